@@ -1,0 +1,40 @@
+"""jaxquat: differentiable JAX quaternions and rigid-body orientation integrators.
+
+Quaternions are `(..., 4)` arrays ordered (w, x, y, z), Hamilton product, active rotations
+v' = q v q⁻¹; `multiply(q2, q1)` applies q1 first. Angular velocities are `(..., 3)` in rad/s,
+world frame unless `frame="body"`.
+"""
+
+import importlib.metadata
+
+# Algebra
+from ._algebra import (
+    conjugate as conjugate,
+    dot as dot,
+    exp as exp,
+    from_vector as from_vector,
+    identity as identity,
+    inverse as inverse,
+    log as log,
+    multiply as multiply,
+    norm as norm,
+    normalize as normalize,
+    vector_part as vector_part,
+)
+
+# Rotations
+from ._rotation import (
+    from_axis_angle as from_axis_angle,
+    from_rotvec as from_rotvec,
+    from_xyzw as from_xyzw,
+    rotate as rotate,
+    to_axis_angle as to_axis_angle,
+    to_matrix as to_matrix,
+    to_rotvec as to_rotvec,
+    to_xyzw as to_xyzw,
+)
+
+try:
+    __version__ = importlib.metadata.version("jaxquat")
+except importlib.metadata.PackageNotFoundError:  # running from a source tree without install
+    __version__ = "0+unknown"

@@ -1,0 +1,147 @@
+"""Quaternion algebra on `(..., 4)` arrays ordered (w, x, y, z), Hamilton product.
+
+All functions broadcast leading axes like NumPy and keep the input's float dtype.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike
+
+from ._numerics import (
+    atan2_over,
+    broadcast_batch,
+    check_trailing,
+    cos_half,
+    default_float_dtype,
+    safe_norm,
+    sinc_half,
+    sum_squares,
+)
+
+
+def identity(shape: int | tuple[int, ...] = (), dtype=None) -> Array:
+    """The identity rotation 1 + 0i + 0j + 0k, broadcast to `shape + (4,)`.
+
+    **Arguments:**
+
+    - `shape`: batch shape of the result.
+    - `dtype`: float dtype; defaults to JAX's default float (float64 under `jax_enable_x64`).
+
+    **Returns:** an array of shape `(*shape, 4)`.
+    """
+    if isinstance(shape, int):
+        shape = (shape,)
+    dtype = default_float_dtype() if dtype is None else jnp.dtype(dtype)
+    one = jnp.zeros((4,), dtype).at[0].set(1)
+    return jnp.broadcast_to(one, tuple(shape) + (4,))
+
+
+def _split(q: Array) -> tuple[Array, Array, Array, Array]:
+    return q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+
+
+def multiply(p: ArrayLike, q: ArrayLike) -> Array:
+    """Hamilton product p ⊗ q (i² = j² = k² = ijk = −1).
+
+    As rotations, `multiply(q2, q1)` applies `q1` first, then `q2`.
+
+    **Arguments:**
+
+    - `p`, `q`: quaternions of shape `(..., 4)`; leading axes broadcast.
+
+    **Returns:** the product, shape `(..., 4)`.
+
+    Example: `multiply([0, 1, 0, 0], [0, 0, 1, 0])` is k = `[0, 0, 0, 1]`.
+    """
+    p = check_trailing(p, 4, "p")
+    q = check_trailing(q, 4, "q")
+    p, q = broadcast_batch((p, 1), (q, 1))
+    pw, px, py, pz = _split(p)
+    qw, qx, qy, qz = _split(q)
+    return jnp.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        axis=-1,
+    )
+
+
+def conjugate(q: ArrayLike) -> Array:
+    """The conjugate q* = w − xi − yj − zk."""
+    q = check_trailing(q, 4, "q")
+    return q * jnp.asarray([1.0, -1.0, -1.0, -1.0], q.dtype)
+
+
+def norm(q: ArrayLike) -> Array:
+    """The Euclidean norm |q| = √(w² + x² + y² + z²), shape `(...)`. Gradient 0 at q = 0."""
+    q = check_trailing(q, 4, "q")
+    return safe_norm(q)
+
+
+def inverse(q: ArrayLike) -> Array:
+    """The inverse q⁻¹ = q*/|q|² (for unit quaternions, the conjugate). NaN for q = 0."""
+    q = check_trailing(q, 4, "q")
+    return conjugate(q) / sum_squares(q, keepdims=True)
+
+
+def normalize(q: ArrayLike) -> Array:
+    """q/|q|, the unit quaternion of the same rotation. NaN for q = 0 (nothing is invented)."""
+    q = check_trailing(q, 4, "q")
+    return q / jnp.sqrt(sum_squares(q, keepdims=True))
+
+
+def dot(p: ArrayLike, q: ArrayLike) -> Array:
+    """The 4-vector dot product w₁w₂ + x₁x₂ + y₁y₂ + z₁z₂, shape `(...)`."""
+    p = check_trailing(p, 4, "p")
+    q = check_trailing(q, 4, "q")
+    p, q = broadcast_batch((p, 1), (q, 1))
+    return jnp.sum(p * q, axis=-1)
+
+
+def from_vector(v: ArrayLike) -> Array:
+    """The pure quaternion ṽ = (0, v) of a 3-vector v (the seed's equation vectorToQuat)."""
+    v = check_trailing(v, 3, "v")
+    return jnp.concatenate([jnp.zeros_like(v[..., :1]), v], axis=-1)
+
+
+def vector_part(q: ArrayLike) -> Array:
+    """The vector (imaginary) part (x, y, z) of q, shape `(..., 3)`."""
+    q = check_trailing(q, 4, "q")
+    return q[..., 1:]
+
+
+def exp(q: ArrayLike) -> Array:
+    """The quaternion exponential exp(w + v) = eʷ (cos|v| + sin|v| v/|v|).
+
+    The rotation of a rotation vector r is `exp((0, r/2))` (see `from_rotvec`). Series-switched near
+    v = 0: value eʷ (1, 0), Jacobian w.r.t. v there eʷ·[0; I₃].
+    """
+    q = check_trailing(q, 4, "q")
+    v = q[..., 1:]
+    # cos|v| = cos(θ/2) and sin|v|/|v| = 2 sin(θ/2)/θ with θ = 2|v|.
+    theta_sq = 4.0 * sum_squares(v)
+    scale = jnp.exp(q[..., 0])
+    w = scale * cos_half(theta_sq)
+    xyz = (scale * 2.0 * sinc_half(theta_sq))[..., None] * v
+    return jnp.concatenate([w[..., None], xyz], axis=-1)
+
+
+def log(q: ArrayLike) -> Array:
+    """The quaternion logarithm log(q) = (ln|q|, atan2(|v|, w) v/|v|), principal branch.
+
+    For a unit quaternion the result is the pure quaternion (0, r/2) with r the rotation vector
+    (|r| ≤ 2π; use `to_rotvec` for the shortest, |r| ≤ π). Series-switched near v = 0 for w > 0: value
+    (ln w, 0), Jacobian of the vector part w.r.t. v there I₃/w. `log(-1)` returns (0, 0, 0, 0)
+    (the axis of a half-turn of the 4-sphere is undefined); `log(0)` is −∞ in w.
+    """
+    q = check_trailing(q, 4, "q")
+    w = q[..., 0]
+    v = q[..., 1:]
+    s_sq = sum_squares(v)
+    log_norm = 0.5 * jnp.log(s_sq + w * w)
+    xyz = atan2_over(s_sq, w)[..., None] * v
+    return jnp.concatenate([log_norm[..., None], xyz], axis=-1)

@@ -1,0 +1,226 @@
+"""Safe numerics shared by every jaxquat module.
+
+Everything that is singular (or loses precision) at a point lives here: a norm with a usable gradient
+at zero, and the coefficient functions of the exponential map written as functions of the *squared*
+angle, switched to a Taylor series in θ² near zero behind a double `jnp.where` (mask the input before
+the unsafe operation, select after; NUMERICS.md §4).  Other modules never write their own guard.
+
+Also here: input validation helpers that raise a `ValueError` at trace time naming the argument.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike
+
+# Below these values of θ² the series (terms through θ⁶) is used.  The first dropped term is then
+# below 1e-17 (float64) / 1e-10 (float32) relative, i.e. round-off, and the direct formula is still
+# accurate (value and gradient) just above the switch.
+_SERIES_THRESHOLD = {jnp.dtype("float64"): 1e-3, jnp.dtype("float32"): 1e-2, jnp.dtype("float16"): 1e-1}
+
+
+def default_float_dtype() -> jnp.dtype:
+    """The dtype `jnp.asarray(1.0)` has: float64 when `jax_enable_x64` is on, else float32."""
+    return jnp.asarray(1.0).dtype
+
+
+def series_threshold(dtype) -> float:
+    """Value of θ² below which the coefficient functions switch to their series (per dtype)."""
+    return _SERIES_THRESHOLD.get(jnp.dtype(dtype), 1e-2)
+
+
+def as_float_array(x: ArrayLike, name: str = "x") -> Array:
+    """`jnp.asarray(x)`, promoting integer / bool input to the default float dtype.
+
+    Floating input keeps its dtype (float32 in → float32 out).
+    """
+    try:
+        x = jnp.asarray(x)
+    except TypeError as e:
+        raise ValueError(f"`{name}` must be an array of numbers; got {type(x).__name__}.") from e
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+        if jnp.issubdtype(x.dtype, jnp.complexfloating):
+            raise ValueError(f"`{name}` must be real; got dtype {x.dtype}.")
+        x = x.astype(default_float_dtype())
+    return x
+
+
+def check_trailing(x: ArrayLike, size: int, name: str) -> Array:
+    """Convert `x` to a float array and check that its last axis has `size` entries.
+
+    Raises a `ValueError` naming the argument, the expected and the received shape.
+    """
+    x = as_float_array(x, name)
+    if x.ndim == 0 or x.shape[-1] != size:
+        raise ValueError(f"`{name}` must have shape (..., {size}); got shape {tuple(x.shape)}.")
+    return x
+
+
+def check_matrix(x: ArrayLike, name: str) -> Array:
+    """Convert `x` to a float array of shape `(..., 3, 3)` or raise a `ValueError`."""
+    x = as_float_array(x, name)
+    if x.ndim < 2 or x.shape[-2:] != (3, 3):
+        raise ValueError(f"`{name}` must have shape (..., 3, 3); got shape {tuple(x.shape)}.")
+    return x
+
+
+def check_choice(value, choices: Sequence[str], name: str) -> str:
+    """Check that `value` is one of the strings `choices` (raises a `ValueError` naming `name`)."""
+    if not isinstance(value, str) or value not in choices:
+        expected = ", ".join(repr(c) for c in choices)
+        raise ValueError(f"`{name}` must be one of {expected}; got {value!r}.")
+    return value
+
+
+def check_frame(frame) -> str:
+    """Validate a `frame=` argument: `"world"` or `"body"`."""
+    return check_choice(frame, ("world", "body"), "frame")
+
+
+def broadcast_batch(*named: tuple[Array, int]) -> tuple[Array, ...]:
+    """Broadcast the leading (batch) axes of arrays whose trailing `k` axes are their own.
+
+    Each argument is `(array, k)` where the last `k` axes are the element shape. Raises a `ValueError`
+    when the batch shapes are incompatible.
+    """
+    batch_shapes = [a.shape[: a.ndim - k] for a, k in named]
+    try:
+        batch = np.broadcast_shapes(*batch_shapes)
+    except ValueError as e:
+        raise ValueError(
+            f"leading (batch) shapes {', '.join(str(s) for s in batch_shapes)} do not broadcast."
+        ) from e
+    return tuple(jnp.broadcast_to(a, batch + a.shape[a.ndim - k :]) for a, k in named)
+
+
+def sum_squares(x: Array, axis: int = -1, keepdims: bool = False) -> Array:
+    """Σ x², the smooth squared norm (use it instead of `norm(x)**2`)."""
+    return jnp.sum(x * x, axis=axis, keepdims=keepdims)
+
+
+def safe_norm(x: Array, axis: int = -1, keepdims: bool = False) -> Array:
+    """Euclidean norm whose gradient at `x = 0` is 0 instead of NaN.
+
+    Value: |x| everywhere. Gradient: x/|x| for x ≠ 0 and exactly 0 at x = 0 (the norm is not
+    differentiable there; 0 is the minimum-norm subgradient).
+    """
+    sq = sum_squares(x, axis=axis, keepdims=keepdims)
+    nonzero = sq > 0
+    safe_sq = jnp.where(nonzero, sq, jnp.ones_like(sq))
+    return jnp.where(nonzero, jnp.sqrt(safe_sq), jnp.zeros_like(sq))
+
+
+def _polyval(coeffs: Sequence[float], x: Array) -> Array:
+    """Σ coeffs[k] x^k by Horner's rule with Python-float coefficients (keeps x's dtype)."""
+    result = jnp.full_like(x, coeffs[-1])
+    for c in reversed(coeffs[:-1]):
+        result = result * x + c
+    return result
+
+
+def _switched(
+    theta_sq: Array, series: Sequence[float], direct: Callable[[Array], Array], threshold=None
+) -> Array:
+    """Evaluate `direct(θ)` away from 0 and `series` (in θ²) near 0, with NaN-free gradients."""
+    theta_sq = jnp.asarray(theta_sq)
+    if threshold is None:
+        threshold = series_threshold(theta_sq.dtype)
+    small = theta_sq < threshold
+    safe_sq = jnp.where(small, jnp.full_like(theta_sq, 1.0), theta_sq)
+    return jnp.where(small, _polyval(series, theta_sq), direct(jnp.sqrt(safe_sq)))
+
+
+def cos_half(theta_sq: ArrayLike) -> Array:
+    """cos(θ/2) as a function of θ².
+
+    At θ = 0: value 1, derivative w.r.t. θ² is −1/8.
+    """
+    return _switched(
+        theta_sq, (1.0, -1.0 / 8.0, 1.0 / 384.0, -1.0 / 46080.0), lambda t: jnp.cos(0.5 * t)
+    )
+
+
+def sinc_half(theta_sq: ArrayLike) -> Array:
+    """sin(θ/2)/θ as a function of θ².
+
+    At θ = 0: value 1/2, derivative w.r.t. θ² is −1/48.
+    """
+    return _switched(
+        theta_sq,
+        (0.5, -1.0 / 48.0, 1.0 / 3840.0, -1.0 / 645120.0),
+        lambda t: jnp.sin(0.5 * t) / t,
+    )
+
+
+def cos_half_minus_one(theta_sq: ArrayLike) -> Array:
+    """cos(θ/2) − 1 without cancellation, computed as −2 sin²(θ/4) = −(θ²/2)·(2 sin(θ/4)/θ)².
+
+    At θ = 0: value 0, derivative w.r.t. θ² is −1/8.
+    """
+    theta_sq = jnp.asarray(theta_sq)
+    # 2 sin(θ/4)/θ = sin(φ/2)/φ with φ = θ/2, i.e. sinc_half(θ²/4).
+    s = sinc_half(0.25 * theta_sq)
+    return -0.5 * theta_sq * s * s
+
+
+def tan_half_over(theta_sq: ArrayLike) -> Array:
+    """tan(θ/2)/θ as a function of θ² (the seed's correction factor).
+
+    At θ = 0: value 1/2, derivative w.r.t. θ² is 1/24. Poles at θ = π (mod 2π): there the direct
+    formula returns the floating-point value of tan (large but finite, ±1.6e16/θ in float64).
+    """
+    return _switched(
+        theta_sq,
+        (0.5, 1.0 / 24.0, 1.0 / 240.0, 17.0 / 40320.0),
+        lambda t: jnp.tan(0.5 * t) / t,
+    )
+
+
+def dexpinv_coeff(theta_sq: ArrayLike) -> Array:
+    """c(θ) = (1 − (θ/2)·cot(θ/2))/θ², the coefficient of u×(u×v) in dexp⁻¹_u(v) on so(3).
+
+    At θ = 0: value 1/12, derivative w.r.t. θ² is 1/720. Singular at θ = 2π.
+    """
+
+    def direct(t):
+        half = 0.5 * t
+        return (1.0 - half * jnp.cos(half) / jnp.sin(half)) / (t * t)
+
+    return _switched(theta_sq, (1.0 / 12.0, 1.0 / 720.0, 1.0 / 30240.0, 1.0 / 1209600.0), direct)
+
+
+def atan2_over(s_sq: ArrayLike, w: ArrayLike) -> Array:
+    """atan2(s, w)/s for s = √(s²) ≥ 0, the coefficient of the logarithm of a quaternion (w, v), s = |v|.
+
+    For w > 0 and small s/w a series in x = s²/w² is used: (1 − x/3 + x²/5 − x³/7 + x⁴/9)/w.
+    At s = 0 and w > 0: value 1/w, derivative w.r.t. s² is −1/(3w³). At s = 0 and w ≤ 0 the function is
+    singular (atan2(0, −1) = π); the value returned there is π/s evaluated at the masked s = 1, i.e. π,
+    which makes `log(-1)` return the zero vector part (the axis is undefined).
+    """
+    s_sq = jnp.asarray(s_sq)
+    w = jnp.asarray(w)
+    x_threshold = 1e-4 if s_sq.dtype == jnp.float64 else 1e-2
+    safe_w = jnp.where(w > 0, w, jnp.ones_like(w))
+    x = s_sq / (safe_w * safe_w)
+    use_series = (w > 0) & (x < x_threshold)
+    safe_s_sq = jnp.where(use_series | (s_sq <= 0), jnp.ones_like(s_sq), s_sq)
+    s = jnp.sqrt(safe_s_sq)
+    direct = jnp.arctan2(jnp.where(s_sq <= 0, jnp.zeros_like(s), s), w) / s
+    series = _polyval((1.0, -1.0 / 3.0, 1.0 / 5.0, -1.0 / 7.0, 1.0 / 9.0), x) / safe_w
+    return jnp.where(use_series, series, direct)
+
+
+def cross(a: Array, b: Array) -> Array:
+    """Cross product over the last axis with explicit broadcasting of leading axes."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return jnp.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def is_tracer(x) -> bool:
+    """True when `x` is an abstract value under a JAX transformation."""
+    return isinstance(x, jax.core.Tracer)

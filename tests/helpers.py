@@ -1,0 +1,80 @@
+"""Test helpers: sign-invariant comparison, per-dtype tolerances, samplers incl. singular points."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+# Relative tolerances for derivative checks and value comparisons, per dtype.
+TOL = {jnp.dtype("float64"): 1e-7, jnp.dtype("float32"): 1e-3}
+
+
+def tol(dtype) -> float:
+    return TOL[jnp.dtype(dtype)]
+
+
+def canonical(q):
+    """Sign-fix quaternions (w ≥ 0, ties broken by the first non-zero component) for comparison."""
+    q = np.asarray(q, dtype=np.float64)
+    idx = np.argmax(np.abs(q) > 1e-12 * np.max(np.abs(q), axis=-1, keepdims=True), axis=-1)
+    lead = np.take_along_axis(q, idx[..., None], axis=-1)
+    sign = np.where(q[..., :1] != 0, np.sign(q[..., :1]), np.sign(lead))
+    return q * np.where(sign == 0, 1.0, sign)
+
+
+def quat_distance(p, q):
+    """max over the batch of min(|p − q|, |p + q|): zero iff equal up to sign."""
+    p = np.asarray(p, dtype=np.float64)
+    q = np.asarray(q, dtype=np.float64)
+    d = np.minimum(np.linalg.norm(p - q, axis=-1), np.linalg.norm(p + q, axis=-1))
+    return float(np.max(d)) if d.size else 0.0
+
+
+def assert_quat_close(p, q, atol=1e-12):
+    """Assert that p and q are equal up to sign, element-wise over the batch."""
+    d = quat_distance(p, q)
+    assert d <= atol, f"quaternions differ (up to sign) by {d:.3e} > {atol:.1e}"
+
+
+def random_unit(key, shape=(), dtype=jnp.float64):
+    """Haar-uniform unit quaternions of shape `(*shape, 4)`."""
+    x = jax.random.normal(key, tuple(shape) + (4,), dtype=dtype)
+    return x / jnp.linalg.norm(x, axis=-1, keepdims=True)
+
+
+def near_identity(key, eps, shape=(), dtype=jnp.float64):
+    """Unit quaternions at angle ≈ eps from the identity (eps = 0 gives exactly the identity)."""
+    r = jax.random.normal(key, tuple(shape) + (3,), dtype=dtype)
+    r = eps * r / jnp.linalg.norm(r, axis=-1, keepdims=True)
+    half = 0.5 * jnp.linalg.norm(r, axis=-1, keepdims=True)
+    safe = jnp.where(half > 0, half, 1.0)
+    vec = jnp.where(half > 0, jnp.sin(half) / safe * 0.5, 0.5) * r
+    return jnp.concatenate([jnp.cos(half), vec], axis=-1)
+
+
+def near_pi(key, eps, shape=(), dtype=jnp.float64):
+    """Unit quaternions at angle π − eps (w ≈ 0)."""
+    axis = jax.random.normal(key, tuple(shape) + (3,), dtype=dtype)
+    axis = axis / jnp.linalg.norm(axis, axis=-1, keepdims=True)
+    half = 0.5 * (jnp.pi - eps)
+    return jnp.concatenate([jnp.full(axis.shape[:-1] + (1,), jnp.cos(half), dtype), jnp.sin(half) * axis], -1)
+
+
+def tangent_perturbation(q, direction):
+    """Project a 4-vector perturbation onto the tangent space of the unit sphere at q."""
+    return direction - jnp.sum(direction * q, axis=-1, keepdims=True) * q
+
+
+def central_jacobian(f, x, eps=None):
+    """Central finite-difference Jacobian of f at x (float64 numpy), shape f(x).shape + x.shape."""
+    x = np.asarray(x, dtype=np.float64)
+    if eps is None:
+        eps = 1e-6
+    fx = np.asarray(f(x))
+    jac = np.zeros(fx.shape + x.shape)
+    for idx in np.ndindex(x.shape):
+        dx = np.zeros_like(x)
+        dx[idx] = eps
+        jac[(...,) + idx] = (np.asarray(f(x + dx)) - np.asarray(f(x - dx))) / (2 * eps)
+    return jac
