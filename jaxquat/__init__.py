@@ -34,6 +34,14 @@ from ._rotation import (
     to_xyzw as to_xyzw,
 )
 
+# Kinematics
+from ._kinematics import (
+    angular_velocity as angular_velocity,
+    corrected_rate as corrected_rate,
+    rate as rate,
+    step as step,
+)
+
 try:
     __version__ = importlib.metadata.version("jaxquat")
 except importlib.metadata.PackageNotFoundError:  # running from a source tree without install
