@@ -25,13 +25,29 @@ from ._algebra import (
 # Rotations
 from ._rotation import (
     from_axis_angle as from_axis_angle,
+    from_euler as from_euler,
+    from_matrix as from_matrix,
     from_rotvec as from_rotvec,
+    from_two_vectors as from_two_vectors,
     from_xyzw as from_xyzw,
     rotate as rotate,
     to_axis_angle as to_axis_angle,
+    to_euler as to_euler,
     to_matrix as to_matrix,
     to_rotvec as to_rotvec,
     to_xyzw as to_xyzw,
+)
+
+# Geometry
+from ._geometry import (
+    angle_between as angle_between,
+    canonicalize as canonicalize,
+    check_unit as check_unit,
+    mean as mean,
+    random as random,
+    slerp as slerp,
+    squad as squad,
+    squad_control_points as squad_control_points,
 )
 
 # Kinematics

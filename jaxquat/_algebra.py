@@ -73,7 +73,8 @@ def multiply(p: ArrayLike, q: ArrayLike) -> Array:
 def conjugate(q: ArrayLike) -> Array:
     """The conjugate q* = w − xi − yj − zk."""
     q = check_trailing(q, 4, "q")
-    return q * jnp.asarray([1.0, -1.0, -1.0, -1.0], q.dtype)
+    # Not `q * [1, -1, -1, -1]`: that implicit rank promotion raises for batched q.
+    return jnp.concatenate([q[..., :1], -q[..., 1:]], axis=-1)
 
 
 def norm(q: ArrayLike) -> Array:

@@ -224,3 +224,46 @@ def cross(a: Array, b: Array) -> Array:
 def is_tracer(x) -> bool:
     """True when `x` is an abstract value under a JAX transformation."""
     return isinstance(x, jax.core.Tracer)
+
+
+def safe_atan2(y: Array, x: Array) -> Array:
+    """atan2(y, x) whose gradient at (0, 0) is 0 instead of NaN.
+
+    Value: `jnp.arctan2(y, x)` everywhere (0 at the origin). Gradient: (x, −y)/(x² + y²) away from the
+    origin; at the origin (where atan2 is discontinuous) exactly 0.
+    """
+    nonzero = (x * x + y * y) > 0
+    safe_x = jnp.where(nonzero, x, jnp.ones_like(x))
+    safe_y = jnp.where(nonzero, y, jnp.zeros_like(y))
+    return jnp.where(nonzero, jnp.arctan2(safe_y, safe_x), jnp.zeros_like(x))
+
+
+@jax.custom_jvp
+def top_eigenvector(k: Array) -> Array:
+    """The unit eigenvector of the largest eigenvalue of symmetric matrices `k` of shape `(..., n, n)`.
+
+    Value from `jnp.linalg.eigh` (its sign is arbitrary; callers fix it). Derivative by first-order
+    perturbation theory, dv = (λI − K)⁺ dK v, computed as the solve
+    (λI − K + v vᵀ) dv = (I − v vᵀ) dK v. Unlike differentiating `eigh` itself, this involves only the
+    gaps to the *largest* eigenvalue, so it is finite (and NaN-free in reverse mode) when the other
+    eigenvalues are degenerate — e.g. the eigenvalues (3, −1, −1, −1) of Davenport's matrix of an exact
+    rotation. Requires the largest eigenvalue to be simple.
+    """
+    _, vectors = jnp.linalg.eigh(k)
+    return vectors[..., :, -1]
+
+
+@top_eigenvector.defjvp
+def _top_eigenvector_jvp(primals, tangents):
+    (k,), (dk,) = primals, tangents
+    v = top_eigenvector(k)
+    dk = 0.5 * (dk + jnp.swapaxes(dk, -1, -2))
+    kv = jnp.einsum("...ij,...j->...i", k, v)
+    lam = jnp.sum(v * kv, axis=-1)
+    outer = v[..., :, None] * v[..., None, :]
+    eye = jnp.broadcast_to(jnp.eye(k.shape[-1], dtype=k.dtype), k.shape)
+    shifted = lam[..., None, None] * eye - k + outer
+    dkv = jnp.einsum("...ij,...j->...i", dk, v)
+    rhs = dkv - jnp.sum(v * dkv, axis=-1, keepdims=True) * v
+    dv = jnp.linalg.solve(shifted, rhs[..., None])[..., 0]
+    return v, dv

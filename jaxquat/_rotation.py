@@ -12,12 +12,15 @@ from ._numerics import (
     as_float_array,
     atan2_over,
     broadcast_batch,
+    check_matrix,
     check_trailing,
     cos_half,
     cross,
+    safe_atan2,
     safe_norm,
     sinc_half,
     sum_squares,
+    top_eigenvector,
 )
 
 
@@ -139,3 +142,209 @@ def to_xyzw(q: ArrayLike) -> Array:
     """Reorder (w, x, y, z) to scalar-last (x, y, z, w)."""
     q = check_trailing(q, 4, "q")
     return jnp.roll(q, -1, axis=-1)
+
+
+def from_matrix(m: ArrayLike) -> Array:
+    r"""The unit quaternion (w ≥ 0) of the rotation matrix nearest to `m` in the Frobenius norm.
+
+    Davenport's q-method in Bar-Itzhack's form (Bar-Itzhack 2000, "New method for extracting the
+    quaternion from a rotation matrix", J. Guid. Control Dyn. 23(6)): for any 3×3 matrix M,
+    $\operatorname{tr}(R(q)^\top M) = q^\top K q$ with the symmetric 4×4 matrix
+    $K = \begin{bmatrix} \operatorname{tr} M & a^\top \\ a & M + M^\top - \operatorname{tr}(M) I \end{bmatrix}$,
+    $a = (M_{32} - M_{23}, M_{13} - M_{31}, M_{21} - M_{12})$. Since
+    $\|R - M\|_F^2 = \text{const} - 2\operatorname{tr}(R^\top M)$, the top eigenvector of K is the
+    rotation nearest to M (the special-orthogonal Procrustes solution, i.e. the SVD projection with the
+    determinant fixed). For an exact rotation the eigenvalues are (3, −1, −1, −1): well separated, so
+    the result is accurate everywhere, including half-turns, with no branch on the largest diagonal.
+
+    **Arguments:**
+
+    - `m`: matrices, shape `(..., 3, 3)`; need not be exactly orthogonal.
+
+    **Returns:** unit quaternions, shape `(..., 4)`, canonicalised to w ≥ 0 (q and −q are the same
+    rotation; `from_matrix(to_matrix(q))` is ±q).
+
+    **Gradient:** by perturbation theory of the simple top eigenvalue (`_numerics.top_eigenvector`):
+    smooth wherever the nearest rotation is unique, finite at the identity. The sign choice w ≥ 0 makes
+    the result jump to the other sheet across exact half-turns (w = 0).
+
+    Example: the seed's matrix of a π/4 turn about z gives `[0.92388, 0, 0, 0.38268]`.
+    """
+    m = check_matrix(m, "m")
+    trace = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
+    a = jnp.stack(
+        [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], axis=-1
+    )
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=m.dtype), m.shape)
+    lower = m + jnp.swapaxes(m, -1, -2) - trace[..., None, None] * eye
+    k = jnp.concatenate(
+        [
+            jnp.concatenate([trace[..., None, None], a[..., None, :]], axis=-1),
+            jnp.concatenate([a[..., :, None], lower], axis=-1),
+        ],
+        axis=-2,
+    )
+    q = top_eigenvector(k)
+    return jnp.where(q[..., :1] < 0, -q, q)
+
+
+_AXIS_INDEX = {"x": 0, "y": 1, "z": 2}
+
+
+def _parse_seq(seq) -> tuple[bool, tuple[int, int, int]]:
+    """Validate an Euler sequence (SciPy's rule) → (extrinsic, axis indices)."""
+    valid = (
+        isinstance(seq, str)
+        and len(seq) == 3
+        and (set(seq) <= set("xyz") or set(seq) <= set("XYZ"))
+        and seq[0] != seq[1]
+        and seq[1] != seq[2]
+    )
+    if not valid:
+        raise ValueError(
+            "`seq` must be 3 axes from 'xyz' (extrinsic) or from 'XYZ' (intrinsic), not mixing case, "
+            f"with no axis repeated consecutively (e.g. 'xyz', 'ZXZ'); got {seq!r}."
+        )
+    return seq.islower(), tuple(_AXIS_INDEX[c] for c in seq.lower())
+
+
+def _elementary(axis: int, angle: Array) -> Array:
+    half = 0.5 * angle
+    zero = jnp.zeros_like(angle)
+    vector = [jnp.sin(half) if i == axis else zero for i in range(3)]
+    return jnp.stack([jnp.cos(half), *vector], axis=-1)
+
+
+def _hamilton(p: Array, q: Array) -> Array:
+    pw, pv = p[..., :1], p[..., 1:]
+    qw, qv = q[..., :1], q[..., 1:]
+    w = pw * qw - jnp.sum(pv * qv, axis=-1, keepdims=True)
+    return jnp.concatenate([w, pw * qv + qw * pv + cross(pv, qv)], axis=-1)
+
+
+def from_euler(seq: str, angles: ArrayLike) -> Array:
+    """The unit quaternion of Euler angles, with SciPy's sequences and case rule.
+
+    Upper-case `seq` (e.g. `"XYZ"`) is intrinsic: rotate about X, then about the *new* Y, then the new
+    Z, i.e. q = q_X(α) ⊗ q_Y(β) ⊗ q_Z(γ). Lower-case (e.g. `"xyz"`) is extrinsic: about the fixed axes
+    x, then y, then z, i.e. q = q_z(γ) ⊗ q_y(β) ⊗ q_x(α). All 12 sequences: the 6 Tait–Bryan
+    (`xyz`, `xzy`, …) and the 6 proper Euler (`zxz`, `xyx`, …) ones, in either case.
+
+    **Arguments:**
+
+    - `seq`: the axis sequence, 3 characters.
+    - `angles`: (α, β, γ) in radians, shape `(..., 3)`, in the order of `seq`.
+
+    **Returns:** unit quaternions, shape `(..., 4)` (not sign-canonicalised). Smooth in the angles.
+
+    Agrees with `scipy.spatial.transform.Rotation.from_euler(seq, angles)` (up to sign).
+    """
+    extrinsic, axes = _parse_seq(seq)
+    angles = check_trailing(angles, 3, "angles")
+    factors = [_elementary(axis, angles[..., n]) for n, axis in enumerate(axes)]
+    q = factors[0]
+    for factor in factors[1:]:
+        q = _hamilton(factor, q) if extrinsic else _hamilton(q, factor)
+    return q
+
+
+# SciPy's threshold on the middle angle for declaring gimbal lock.
+_GIMBAL_LOCK_EPS = 1e-7
+
+
+def to_euler(q: ArrayLike, seq: str) -> Array:
+    r"""Euler angles of the rotation q for the sequence `seq` (SciPy's conventions and ranges).
+
+    The quaternion algorithm of Bernardes & Bewley (2022), "Quaternion to Euler angles conversion:
+    A direct, general and computationally efficient method", PLoS ONE 17(11): e0276302, as SciPy
+    implements it. The first and third angles lie in [−π, π]; the middle one in [0, π] for proper Euler
+    sequences (`zxz`, …) and in [−π/2, π/2] for Tait–Bryan ones (`xyz`, …). Within 1e-7 of gimbal lock
+    (middle angle 0 or π; ±π/2 for Tait–Bryan) the split between first and third angle is not unique:
+    as SciPy does, the third angle (first, for intrinsic sequences) is set to 0 — without SciPy's
+    warning, since values are not inspected under `jit`.
+
+    **Arguments:**
+
+    - `q`: quaternions, shape `(..., 4)`; need not be unit (only the rotation matters); sign-invariant.
+    - `seq`: 3 axes; lower case extrinsic, upper case intrinsic (see `from_euler`).
+
+    **Returns:** angles in radians, shape `(..., 3)`, in the order of `seq`.
+
+    **Gradient:** exact away from gimbal lock and from the ±π wrap of the first and third angles
+    (where Euler angles themselves are not differentiable); finite (NaN-free) at gimbal lock.
+    """
+    extrinsic, axes = _parse_seq(seq)
+    q = check_trailing(q, 4, "q")
+    i, j, k = axes if extrinsic else axes[::-1]
+    symmetric = i == k
+    if symmetric:
+        k = 3 - i - j
+    sign = float((i - j) * (j - k) * (k - i) // 2)
+    w, qi, qj, qk = q[..., 0], q[..., 1 + i], q[..., 1 + j], q[..., 1 + k]
+    if symmetric:
+        a, b, c, d = w, qi, qj, sign * qk
+    else:
+        a, b, c, d = w - qj, qi + sign * qk, qj + w, sign * qk - qi
+    half_sum = safe_atan2(b, a)
+    half_diff = safe_atan2(d, c)
+    middle = 2.0 * jnp.arctan2(
+        safe_norm(jnp.stack([c, d], axis=-1)), safe_norm(jnp.stack([a, b], axis=-1))
+    )
+    at_zero = jnp.abs(middle) <= _GIMBAL_LOCK_EPS
+    at_pi = jnp.abs(middle - jnp.pi) <= _GIMBAL_LOCK_EPS
+    regular = ~(at_zero | at_pi)
+    locked = jnp.where(at_zero, 2.0 * half_sum, (-2.0 if extrinsic else 2.0) * half_diff)
+    zero = jnp.zeros_like(middle)
+    third_sign = 1.0 if symmetric else sign
+    if extrinsic:
+        first = jnp.where(regular, half_sum - half_diff, locked)
+        third = third_sign * jnp.where(regular, half_sum + half_diff, zero)
+    else:
+        first = third_sign * jnp.where(regular, half_sum + half_diff, locked)
+        third = jnp.where(regular, half_sum - half_diff, zero)
+    if not symmetric:
+        middle = middle - 0.5 * jnp.pi
+    angles = jnp.stack([first, middle, third], axis=-1)
+    # Every angle is in [−2π, 2π]; one wrap into [−π, π] as SciPy does (±π are both kept).
+    two_pi = 2.0 * jnp.pi
+    return jnp.where(angles < -jnp.pi, angles + two_pi, jnp.where(angles > jnp.pi, angles - two_pi, angles))
+
+
+def from_two_vectors(a: ArrayLike, b: ArrayLike) -> Array:
+    r"""The shortest rotation taking the direction of `a` to the direction of `b`.
+
+    With unit â, b̂ and the bisector h = â + b̂: q = (â·ĥ, â × ĥ), ĥ = h/|h| — the half-angle form,
+    w = |h|/2 = cos(θ/2), free of the cancellation in 1 + â·b̂ near antiparallel vectors. For exactly
+    antiparallel inputs (h = 0) the shortest rotation is any half-turn about an axis ⟂ â; the one about
+    â × e is returned, e the basis vector least aligned with â.
+
+    **Arguments:**
+
+    - `a`, `b`: vectors, shape `(..., 3)`, non-zero, any length; leading axes broadcast.
+
+    **Returns:** unit quaternions (w ≥ 0), shape `(..., 4)`, with `rotate(a, q)` parallel to `b`.
+
+    **Gradient:** smooth except at antiparallel inputs, where the rotation is not unique: there it is
+    finite (the half-turn's axis depends on â only), and it grows like 1/|â + b̂| as b̂ → −â.
+    Zero vectors give NaN (there is no direction to align).
+    """
+    a = check_trailing(a, 3, "a")
+    b = check_trailing(b, 3, "b")
+    a, b = broadcast_batch((a, 1), (b, 1))
+    a_unit = a / jnp.sqrt(sum_squares(a, keepdims=True))
+    b_unit = b / jnp.sqrt(sum_squares(b, keepdims=True))
+    h = a_unit + b_unit
+    h_sq = sum_squares(h, keepdims=True)
+    generic = h_sq > 0
+    h_norm = jnp.sqrt(jnp.where(generic, h_sq, jnp.ones_like(h_sq)))
+    h_unit = h / h_norm
+    bisector = jnp.concatenate(
+        [jnp.sum(a_unit * h_unit, axis=-1, keepdims=True), cross(a_unit, h_unit)], axis=-1
+    )
+    # Antiparallel: a half-turn about â × e, e = the basis vector of a's smallest component.
+    smallest = jnp.argmin(jnp.abs(a_unit), axis=-1)
+    basis = jnp.eye(3, dtype=a.dtype)[smallest]
+    perpendicular = cross(a_unit, basis)
+    perpendicular = perpendicular / jnp.sqrt(sum_squares(perpendicular, keepdims=True))
+    half_turn = jnp.concatenate([jnp.zeros_like(h_sq), perpendicular], axis=-1)
+    return jnp.where(generic, bisector, half_turn)
