@@ -58,6 +58,9 @@ from ._kinematics import (
     step as step,
 )
 
+# Fixed-step integration
+from ._integrate import integrate as integrate, sampled as sampled
+
 try:
     __version__ = importlib.metadata.version("jaxquat")
 except importlib.metadata.PackageNotFoundError:  # running from a source tree without install
