@@ -61,6 +61,19 @@ from ._kinematics import (
 # Fixed-step integration
 from ._integrate import integrate as integrate, sampled as sampled
 
+# Dynamics
+from ._dynamics import (
+    angular_momentum as angular_momentum,
+    center_of_mass as center_of_mass,
+    euler_equations as euler_equations,
+    inertia_tensor as inertia_tensor,
+    kinetic_energy as kinetic_energy,
+    principal_axes as principal_axes,
+    rigid_body_vector_field as rigid_body_vector_field,
+    simulate_deformable_body as simulate_deformable_body,
+    simulate_rigid_body as simulate_rigid_body,
+)
+
 try:
     __version__ = importlib.metadata.version("jaxquat")
 except importlib.metadata.PackageNotFoundError:  # running from a source tree without install
