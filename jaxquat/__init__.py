@@ -74,6 +74,14 @@ from ._dynamics import (
     simulate_rigid_body as simulate_rigid_body,
 )
 
+# Ensembles
+from ._ensemble import (
+    EnsembleResult as EnsembleResult,
+    body_sharding as body_sharding,
+    load_ensemble as load_ensemble,
+    simulate_ensemble as simulate_ensemble,
+)
+
 try:
     __version__ = importlib.metadata.version("jaxquat")
 except importlib.metadata.PackageNotFoundError:  # running from a source tree without install

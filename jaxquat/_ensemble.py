@@ -1,0 +1,771 @@
+"""Large ensembles: many bodies at once, sharded over all devices, time processed in chunks.
+
+An ensemble is a batch of independent bodies. The body axis is flattened, padded to a multiple of the
+device count and sharded over a one-axis device `Mesh` with JAX's own `NamedSharding`; every step is
+element-wise over bodies, so XLA runs each device's share without communication. Time is processed in
+chunks: each chunk is one compiled call (a `lax.scan`, no host round-trip inside), and the host only
+acts between chunks (progress, writing saved states to disk). Memory is therefore bounded by
+bodies × chunk, whatever the number of steps.
+
+Several hosts: call `jax.distributed.initialize()` on every process before anything else; then
+`jax.devices()` lists all devices of all hosts and `simulate_ensemble` shards over them. Every process
+calls it with the same arguments (e.g. initial conditions made from the same seed).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from functools import partial
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jaxtyping import Array, ArrayLike
+
+from ._algebra import conjugate, multiply
+from ._dynamics import simulate_rigid_body
+from ._integrate import LIE_METHODS, METHODS, _compensated_step, lie_step, scan_steps
+from ._numerics import as_float_array, check_choice, check_frame, check_trailing, safe_norm
+from ._rotation import rotate, to_rotvec
+
+_BODY_AXIS = "bodies"
+_FORMAT = "jaxquat-ensemble"
+_FORMAT_VERSION = 1
+# Default chunk length: about this many body-steps per chunk (≈ 0.1–1 s of work on one CPU core),
+# so that progress is reported often and saved states per chunk stay in the tens of MB.
+_BODY_STEPS_PER_CHUNK = 2**26
+# As `integrate`: renormalise every this many (global) steps.
+_RENORMALIZE_EVERY = 1000
+_UNROLL = 1
+
+
+class EnsembleResult(eqx.Module):
+    """The outcome of `simulate_ensemble`.
+
+    Arrays keep the ensemble's batch shape `batch` (the broadcast leading shape of `q0` and `omega`) and
+    stay on the devices, sharded over bodies (`result.sharding`). Padding bodies are already dropped.
+
+    **Fields:**
+
+    - `final`: orientations after `num_steps` steps, `(*batch, 4)`.
+    - `final_omega`: angular velocities after the last step, `(*batch, 3)` (in the frame the ensemble
+      was run in); for a kinematic ensemble with constant ω this is ω itself.
+    - `saved`: states every `save_every` steps, time-major `(num_saved, *batch, 4)` including the
+      initial state; `None` when nothing was saved or the states were streamed to `path`.
+    - `saved_omega`: for a rigid-body ensemble, ω at the same times, `(num_saved, *batch, 3)`.
+    - `times`: the times of the saved states, `(num_saved,)` (NumPy float64), or `None`.
+    - `angle_from_start`: the angle between each body's initial and final orientation, in `[0, π]`.
+    - `total_angle`: with `statistics=True`, each body's accumulated rotation angle
+      Σₖ angle(q_k, q_{k+1}) over all steps (for constant ω: |ω|·T), else `None`.
+    - `max_angle_from_start`: with `statistics=True`, the largest angle from the initial orientation
+      over all steps, else `None`.
+    - `num_steps`, `num_chunks`, `path`, `seconds` (wall-clock time of the run, compile included).
+    """
+
+    final: Array
+    final_omega: Array
+    saved: Array | None
+    saved_omega: Array | None
+    times: np.ndarray | None
+    angle_from_start: Array
+    total_angle: Array | None
+    max_angle_from_start: Array | None
+    num_steps: int = eqx.field(static=True)
+    num_chunks: int = eqx.field(static=True)
+    path: str | None = eqx.field(static=True)
+    seconds: float = eqx.field(static=True)
+
+    @property
+    def sharding(self):
+        """The sharding of `final` (over the device mesh's `"bodies"` axis)."""
+        return self.final.sharding
+
+    @property
+    def throughput(self) -> float:
+        """Body-steps per second of wall-clock time (compile time included)."""
+        bodies = math.prod(self.final.shape[:-1])
+        return bodies * self.num_steps / max(self.seconds, 1e-12)
+
+
+def _to_body(omega_world: Array, q: Array) -> Array:
+    return rotate(omega_world, conjugate(q))
+
+
+def _to_world(omega_body: Array, q: Array) -> Array:
+    return rotate(omega_body, q)
+
+
+def _angle_between(p: Array, q: Array) -> Array:
+    """Geodesic angle in [0, π] between unit quaternions (sign-invariant, accurate for tiny angles)."""
+    return safe_norm(to_rotvec(multiply(conjugate(p), q)))
+
+
+# ----------------------------------------------------------------------------------------------------
+# Sharding helpers
+
+
+def body_sharding(devices: Sequence[jax.Device] | None = None) -> NamedSharding:
+    """The sharding `simulate_ensemble` uses: bodies (axis 0) split over a one-axis device mesh.
+
+    **Arguments:**
+
+    - `devices`: the devices to use; default all of them (`jax.devices()`, every host's under
+      `jax.distributed`).
+
+    **Returns:** `NamedSharding(Mesh(devices, ("bodies",)), PartitionSpec("bodies"))`. Its `.mesh`
+    shows the device layout.
+    """
+    devices = list(jax.devices() if devices is None else devices)
+    if not devices:
+        raise ValueError("`devices` must name at least one device; got an empty list.")
+    mesh = Mesh(np.asarray(devices, dtype=object), (_BODY_AXIS,))
+    return NamedSharding(mesh, PartitionSpec(_BODY_AXIS))
+
+
+def _time_major(sharding: NamedSharding) -> NamedSharding:
+    return NamedSharding(sharding.mesh, PartitionSpec(None, _BODY_AXIS))
+
+
+@partial(jax.jit, static_argnames=("padded", "sharding"))
+def _pad_and_shard(x: Array, fill: Array, *, padded: int, sharding: NamedSharding) -> Array:
+    """Append copies of `fill` along axis 0 up to `padded` rows, laid out with `sharding`."""
+    extra = padded - x.shape[0]
+    if extra:
+        x = jnp.concatenate(
+            [x, jnp.broadcast_to(fill, (extra,) + x.shape[1:]).astype(x.dtype)], axis=0
+        )
+    return jax.lax.with_sharding_constraint(x, sharding)
+
+
+def _to_host(x: Array) -> np.ndarray:
+    """Fetch a (possibly multi-host) sharded array to the host as a NumPy array."""
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+    return np.asarray(x)
+
+
+# ----------------------------------------------------------------------------------------------------
+# One chunk of steps (compiled; no host work inside)
+
+
+def _kinematic_step_fn(config, omega, dt, t0, q_start, offset):
+    """The per-step update `(k, carry) -> carry` of a kinematic ensemble at global step `offset + k`.
+
+    It is `integrate`'s step (the same `lie_step`, float32 Kahan-compensated increment form and
+    renormalisation every `renormalize_every` global steps), with the compensation in the carry, so a
+    run cut into chunks is bit-for-bit the run in one piece.
+    """
+    method, frame = config["method"], config["frame"]
+    omega_fn = config["omega_fn"]
+    source = omega_fn if omega_fn is not None else (lambda t, q: omega)
+    renormalize_every = config["renormalize_every"]
+
+    def field(t, q, x):
+        return source(t, q), None
+
+    def step_fn(k, carry):
+        q, c, stats = carry
+        index = offset + k
+        t = t0 + index.astype(t0.dtype) * dt
+        if config["compensated"]:
+            q_next, c = _compensated_step(method, field, t, q, c, dt, frame)
+        else:
+            q_next, _ = lie_step(method, field, t, q, None, dt, frame=frame)
+        if renormalize_every is not None:
+            due = (index + 1) % renormalize_every == 0
+            q_next = jnp.where(due, q_next / safe_norm(q_next, keepdims=True), q_next)
+            if c is not None:
+                c = jnp.where(due, jnp.zeros_like(c), c)
+        if stats is not None:
+            total, largest = stats
+            stats = (
+                total + _angle_between(q, q_next),
+                jnp.maximum(largest, _angle_between(q_start, q_next)),
+            )
+        return q_next, c, stats
+
+    return step_fn
+
+
+def _dynamic_step_fn(config, dt, t0, q_start, offset):
+    """The per-step update of a rigid-body ensemble (state in the body frame), via `simulate_rigid_body`."""
+    torque = config["torque"]
+    if torque is not None and config["frame"] == "world":
+        user_torque = torque
+
+        def torque(t, q, omega_body):
+            tau_world = user_torque(t, q, rotate(omega_body, q))
+            return rotate(tau_world, conjugate(q))
+
+    def step_fn(k, carry):
+        q, omega_body, inertia, stats = carry
+        t = t0 + (offset + k).astype(t0.dtype) * dt
+        q_next, omega_next = simulate_rigid_body(
+            q,
+            omega_body,
+            inertia,
+            dt,
+            1,
+            torque=torque,
+            frame="body",
+            method=config["method"],
+            save="final",
+            t0=t,
+        )
+        if stats is not None:
+            total, largest = stats
+            stats = (
+                total + _angle_between(q, q_next),
+                jnp.maximum(largest, _angle_between(q_start, q_next)),
+            )
+        return q_next, omega_next, inertia, stats
+
+    return step_fn
+
+
+@partial(jax.jit, static_argnames=("n_blocks", "block", "tail", "config"))
+def _run_chunk(state, stats, q_start, dt, t0, start, *, n_blocks, block, tail, config):
+    """Steps `start … start + n_blocks·block + tail` of the ensemble; saves the state after each block.
+
+    Step k is at time `t0 + k·dt` with the integer global step index k, and everything a step needs is
+    in the carry, so the result does not depend on how the run is cut into chunks.
+    """
+    config = dict(config)
+    dynamic = config["dynamic"]
+    sharding = config["sharding"]
+
+    def constrain(tree):
+        return jax.tree_util.tree_map(lambda x: jax.lax.with_sharding_constraint(x, sharding), tree)
+
+    def advance(state, stats, offset, n):
+        if dynamic:
+            q, omega_body, inertia = state
+            step_fn = _dynamic_step_fn(config, dt, t0, q_start, offset)
+            carry = (q, omega_body, inertia, stats)
+        else:
+            q, c, omega = state
+            step_fn = _kinematic_step_fn(config, omega, dt, t0, q_start, offset)
+            carry = (q, c, stats)
+        carry, _ = scan_steps(
+            step_fn, carry, n, save="final", checkpoint=False, unroll=config["unroll"]
+        )
+        state = carry[:-1] + ((omega,) if not dynamic else ())
+        return constrain(state), constrain(carry[-1])
+
+    def block_fn(carry, b):
+        state, stats = advance(*carry, start + b * block, block)
+        if dynamic:
+            omega_out = state[1] if config["frame"] == "body" else _to_world(state[1], state[0])
+            saved = (state[0], omega_out)
+        else:
+            saved = (state[0],)
+        return (state, stats), saved if config["save"] else None
+
+    saved = None
+    if n_blocks:
+        (state, stats), saved = jax.lax.scan(
+            block_fn, (state, stats), jnp.arange(n_blocks, dtype=start.dtype)
+        )
+    if tail:
+        state, stats = advance(state, stats, start + n_blocks * block, tail)
+    return state, stats, saved
+
+
+# ----------------------------------------------------------------------------------------------------
+# Streaming saved states to disk
+
+
+class _StateWriter:
+    """Writes saved states to a directory: one `.npy` file per chunk plus a JSON index.
+
+    Every file is written to a temporary name and renamed into place, and `index.json` is rewritten the
+    same way after each chunk, so at any moment the directory holds a readable run with all completed
+    chunks (an interrupted run included).
+    """
+
+    def __init__(self, path: str | os.PathLike, metadata: dict[str, Any]):
+        self.path = os.fspath(path)
+        index_path = os.path.join(self.path, "index.json")
+        if os.path.exists(self.path):
+            if not os.path.isdir(self.path):
+                raise ValueError(f"`path` {self.path!r} exists and is not a directory.")
+            entries = set(os.listdir(self.path))
+            if entries and "index.json" not in entries:
+                raise ValueError(
+                    f"`path` {self.path!r} is a non-empty directory that is not a jaxquat ensemble; "
+                    "refusing to write into it."
+                )
+            if entries:
+                self._remove_previous(index_path)
+        else:
+            os.makedirs(self.path)
+        self.index = dict(
+            metadata,
+            format=_FORMAT,
+            version=_FORMAT_VERSION,
+            complete=False,
+            steps_done=0,
+            records=[],
+            final={},
+        )
+        self._write_index()
+
+    def _remove_previous(self, index_path):
+        try:
+            with open(index_path) as f:
+                old = json.load(f)
+        except (OSError, ValueError) as e:
+            raise ValueError(f"`path` {self.path!r} holds an unreadable index.json ({e}).") from e
+        if old.get("format") != _FORMAT:
+            raise ValueError(
+                f"`path` {self.path!r} holds an index.json that is not a jaxquat ensemble."
+            )
+        names = [n for r in old.get("records", []) for n in r.get("files", {}).values()]
+        names += list(old.get("final", {}).values())
+        for name in names:
+            if os.path.basename(name) == name and os.path.exists(os.path.join(self.path, name)):
+                os.remove(os.path.join(self.path, name))
+
+    def _save(self, name: str, array: np.ndarray) -> None:
+        target = os.path.join(self.path, name)
+        with open(target + ".tmp", "wb") as f:
+            np.save(f, array)
+        os.replace(target + ".tmp", target)
+
+    def _write_index(self) -> None:
+        target = os.path.join(self.path, "index.json")
+        with open(target + ".tmp", "w") as f:
+            json.dump(self.index, f, indent=1)
+        os.replace(target + ".tmp", target)
+
+    def write_record(
+        self, arrays: dict[str, np.ndarray], steps: list[int], steps_done: int
+    ) -> None:
+        number = len(self.index["records"])
+        files = {}
+        for key, array in arrays.items():
+            files[key] = f"{key}_{number:06d}.npy"
+            self._save(files[key], array)
+        self.index["records"].append({"steps": steps, "files": files})
+        self.index["steps_done"] = steps_done
+        self._write_index()
+
+    def progress(self, steps_done: int) -> None:
+        self.index["steps_done"] = steps_done
+        self._write_index()
+
+    def finish(self, arrays: dict[str, np.ndarray]) -> None:
+        for key, array in arrays.items():
+            self.index["final"][key] = f"{key}.npy"
+            self._save(f"{key}.npy", array)
+        self.index["complete"] = True
+        self._write_index()
+
+
+def load_ensemble(path: str | os.PathLike) -> dict[str, Any]:
+    """Read an ensemble written by `simulate_ensemble(..., path=...)` (complete or interrupted).
+
+    **Arguments:**
+
+    - `path`: the directory given as `path`.
+
+    **Returns:** a dict with
+    - `"states"`: saved orientations, time-major `(num_saved, *batch, 4)` (only completed chunks);
+    - `"omegas"`: saved angular velocities `(num_saved, *batch, 3)` for rigid-body ensembles;
+    - `"steps"` / `"times"`: the step indices and times of the saved states;
+    - `"complete"`: whether the run finished; `"steps_done"`: steps completed;
+    - after a complete run also `"final"`, `"final_omega"`, `"angle_from_start"` and, if computed,
+      `"total_angle"` and `"max_angle_from_start"`;
+    - `"metadata"`: the run's parameters (method, frame, dt, …).
+    """
+    path = os.fspath(path)
+    index_path = os.path.join(path, "index.json")
+    try:
+        with open(index_path) as f:
+            index = json.load(f)
+    except FileNotFoundError as e:
+        raise ValueError(f"`path` {path!r} has no index.json: not a jaxquat ensemble.") from e
+    if index.get("format") != _FORMAT:
+        raise ValueError(f"`path` {path!r}: index.json is not a jaxquat ensemble index.")
+    batch = tuple(index["batch_shape"])
+    dtype = np.dtype(index["dtype"])
+    out: dict[str, Any] = {}
+    widths = {"states": 4, "omegas": 3} if index.get("dynamic") else {"states": 4}
+    for key, width in widths.items():
+        parts = [np.load(os.path.join(path, r["files"][key])) for r in index["records"]]
+        out[key] = (
+            np.concatenate(parts, axis=0) if parts else np.zeros((0,) + batch + (width,), dtype)
+        )
+    steps = [s for r in index["records"] for s in r["steps"]]
+    out["steps"] = np.asarray(steps, dtype=np.int64)
+    out["times"] = index["t0"] + index["dt"] * out["steps"].astype(np.float64)
+    for key, name in index.get("final", {}).items():
+        out[key] = np.load(os.path.join(path, name))
+    out["complete"] = bool(index["complete"])
+    out["steps_done"] = int(index["steps_done"])
+    out["metadata"] = {k: v for k, v in index.items() if k not in ("records", "final")}
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------
+# The public entry point
+
+
+def _check_positive_int(value, name: str, *, allow_zero: bool = False) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"`{name}` must be an integer; got {value!r}.")
+    low = 0 if allow_zero else 1
+    if value < low:
+        raise ValueError(f"`{name}` must be {'>= 0' if allow_zero else '>= 1'}; got {value}.")
+    return int(value)
+
+
+def _check_inertia(inertia: ArrayLike) -> tuple[Array, tuple[int, ...]]:
+    """Principal moments `(..., 3)` or matrices `(..., 3, 3)`, finite and positive definite."""
+    inertia = as_float_array(inertia, "inertia")
+    if inertia.ndim >= 2 and inertia.shape[-2:] == (3, 3):
+        batch = inertia.shape[:-2]
+    elif inertia.ndim >= 1 and inertia.shape[-1] == 3:
+        batch = inertia.shape[:-1]
+    else:
+        raise ValueError(
+            "`inertia` must be principal moments (..., 3) or matrices (..., 3, 3); "
+            f"got shape {tuple(inertia.shape)}."
+        )
+    if not isinstance(inertia, jax.core.Tracer):
+        values = np.asarray(inertia, np.float64)
+        if len(batch) < values.ndim - 1:
+            values = np.linalg.eigvalsh(0.5 * (values + np.swapaxes(values, -1, -2)))
+        if not np.all(np.isfinite(values)) or np.any(values <= 0):
+            raise ValueError(
+                "`inertia` must be finite and positive definite (principal moments > 0)."
+            )
+    return inertia, batch
+
+
+def _default_chunk(num_steps: int, num_bodies: int, save_every: int | None) -> int:
+    chunk = max(1, _BODY_STEPS_PER_CHUNK // max(num_bodies, 1))
+    chunk = min(chunk, max(num_steps, 1))
+    # Equal chunks share one compilation: use the smallest chunk length giving the same count.
+    count = -(-max(num_steps, 1) // chunk)
+    chunk = -(-max(num_steps, 1) // count)
+    if save_every:
+        chunk = save_every * max(1, round(chunk / save_every))
+    return chunk
+
+
+def simulate_ensemble(
+    q0: ArrayLike,
+    omega: ArrayLike | Callable,
+    dt: float,
+    num_steps: int,
+    *,
+    inertia: ArrayLike | None = None,
+    torque: Callable | None = None,
+    frame: str | None = None,
+    method: str | None = None,
+    t0: float = 0.0,
+    save_every: int | None = None,
+    statistics: bool = False,
+    chunk_size: int | None = None,
+    path: str | os.PathLike | None = None,
+    devices: Sequence[jax.Device] | None = None,
+    progress: bool | Callable[[int, int], None] = False,
+) -> EnsembleResult:
+    """Simulate many bodies at once, sharded over all devices, in chunks of time.
+
+    Two kinds of ensemble:
+
+    - **kinematic** (`inertia=None`): each body turns with a given angular velocity, advanced by
+      `jaxquat.integrate` with `method` (default `"euler"`, exact for constant ω) in `frame`
+      (default `"world"`). `omega` is a per-body constant `(..., 3)` or a callable `omega(t, q)`
+      acting element-wise on a `(bodies, 4)` batch.
+    - **rigid bodies** (`inertia` given): torque-free (or `torque(t, q, ω)`) rigid bodies advanced by
+      `jaxquat.simulate_rigid_body` with `method` (default `"cf4"`); `omega` is the initial angular
+      velocity in `frame` (default `"body"`).
+
+    The body axis (all leading axes, flattened) is padded to a multiple of the device count and
+    sharded over `devices` (default: all, `jax.devices()`); the padding is dropped from the results.
+    Time runs in chunks of `chunk_size` steps: each chunk is one compiled call, and between chunks the
+    host reports progress and writes saved states to `path`. Peak memory is about
+    bodies × (state + chunk_size / save_every saved states) — independent of `num_steps` when streaming.
+
+    **Arguments:**
+
+    - `q0`: initial orientations `(..., 4)` (unit).
+    - `omega`: angular velocities `(..., 3)` in rad/s (leading axes broadcast with `q0`), or for a
+      kinematic ensemble a callable `omega(t, q) -> (..., 3)`.
+    - `dt`: the time step (a scalar). `num_steps`: the number of steps (≥ 0).
+    - `inertia`: `None` (kinematic), or principal moments `(3,)` / matrices `(3, 3)`, shared or per
+      body `(..., 3)` / `(..., 3, 3)`.
+    - `torque`: optional `torque(t, q, omega)` for rigid bodies (see `simulate_rigid_body`).
+    - `frame`, `method`: as for `integrate` / `simulate_rigid_body`.
+    - `t0`: the initial time; step k is at `t0 + k·dt`.
+    - `save_every`: save the state every this many steps (including the initial state); `None` saves
+      only the final state.
+    - `statistics`: also accumulate per-body `total_angle` and `max_angle_from_start` on the device,
+      at the resolution of single steps.
+    - `chunk_size`: steps per chunk (rounded to a multiple of `save_every`); default about
+      2²⁶ body-steps per chunk.
+    - `path`: a directory to stream the saved states into (one `.npy` file per chunk and an
+      `index.json`; read it back with `jaxquat.load_ensemble`). The saved states are then not kept in
+      memory. The final state and statistics are written when the run completes.
+    - `devices`: the devices to shard over.
+    - `progress`: `False` (default), `True` for a tqdm progress bar on stderr, or a callable
+      `progress(steps_done, num_steps)` called between chunks (raising from it, e.g.
+      `KeyboardInterrupt`, stops the run and leaves `path` readable with the completed chunks).
+
+    **Returns:** an `EnsembleResult`.
+
+    **Example:**
+    ```python
+    key_q, key_w = jax.random.split(jax.random.key(0))
+    q0 = jaxquat.random(key_q, (100_000,), jnp.float32)
+    omega = jax.random.normal(key_w, (100_000, 3), jnp.float32)
+    result = jaxquat.simulate_ensemble(q0, omega, 1e-2, 1_000, save_every=100)
+    result.saved.shape  # (11, 100000, 4)
+    ```
+    """
+    started = time.perf_counter()
+    dynamic = inertia is not None
+    frame = check_frame("body" if dynamic and frame is None else frame or "world")
+    num_steps = _check_positive_int(num_steps, "num_steps", allow_zero=True)
+    if save_every is not None:
+        save_every = _check_positive_int(save_every, "save_every")
+    if chunk_size is not None:
+        chunk_size = _check_positive_int(chunk_size, "chunk_size")
+    if not isinstance(statistics, bool):
+        raise ValueError(f"`statistics` must be True or False; got {statistics!r}.")
+    if not (isinstance(progress, bool) or callable(progress)):
+        raise ValueError(f"`progress` must be a bool or a callable; got {progress!r}.")
+    if torque is not None and not dynamic:
+        raise ValueError("`torque` needs a rigid-body ensemble: pass `inertia` too.")
+
+    q0 = check_trailing(q0, 4, "q0")
+    omega_fn = None
+    if callable(omega):
+        if dynamic:
+            raise ValueError(
+                "`omega` must be an array of initial angular velocities for rigid bodies."
+            )
+        omega_fn = omega
+        omega = jnp.zeros((3,), q0.dtype)
+    omega = check_trailing(omega, 3, "omega")
+    dtype = jnp.result_type(q0, omega)
+    shapes = [q0.shape[:-1], omega.shape[:-1]]
+    if dynamic:
+        inertia, inertia_batch = _check_inertia(inertia)
+        dtype = jnp.result_type(dtype, inertia)
+        shapes.append(inertia_batch)
+    try:
+        batch = tuple(np.broadcast_shapes(*shapes))
+    except ValueError as e:
+        names = "q0, omega" + (", inertia" if dynamic else "")
+        raise ValueError(f"the leading (body) shapes of {names} do not broadcast: {shapes}.") from e
+    dt_array = as_float_array(dt, "dt")
+    if dt_array.ndim != 0:
+        raise ValueError(f"`dt` must be a scalar; got shape {tuple(dt_array.shape)}.")
+    if not jnp.issubdtype(jnp.asarray(t0).dtype, jnp.number) or jnp.ndim(t0) != 0:
+        raise ValueError(f"`t0` must be a scalar; got {t0!r}.")
+    if method is None:
+        method = "cf4" if dynamic else "euler"
+    method = check_choice(
+        method, [m for m in METHODS if m != "magnus4"] if dynamic else METHODS, "method"
+    )
+
+    num_bodies = math.prod(batch)
+    if num_bodies == 0:
+        raise ValueError(f"the ensemble has no bodies (batch shape {batch}).")
+    sharding = body_sharding(devices)
+    num_devices = sharding.mesh.size
+    padded = -(-num_bodies // num_devices) * num_devices
+    # Times in float64 when x64 is on (as `integrate`): t_k = t0 + k·dt with the integer step k.
+    time_dtype = jnp.promote_types(jnp.result_type(float), dtype)
+
+    def place(x, element_shape, fill):
+        x = jnp.broadcast_to(x.astype(dtype), batch + element_shape)
+        x = x.reshape((num_bodies,) + element_shape)
+        return _pad_and_shard(x, jnp.asarray(fill, dtype), padded=padded, sharding=sharding)
+
+    q_start = place(q0, (4,), [1.0, 0.0, 0.0, 0.0])
+    omega_start = place(omega, (3,), [0.0, 0.0, 0.0])
+    if dynamic:
+        if inertia_batch == ():  # one inertia for all bodies: replicated, not sharded
+            replicated = NamedSharding(sharding.mesh, PartitionSpec())
+            inertia_state = jax.device_put(inertia.astype(dtype), replicated)
+        else:
+            element = inertia.shape[len(inertia_batch) :]
+            fill = np.eye(3) if element == (3, 3) else np.ones(3)
+            inertia_state = place(inertia, element, fill)
+        omega_body = omega_start if frame == "body" else _to_body(omega_start, q_start)
+        state = (q_start, omega_body, inertia_state)
+        compensated = False
+    else:
+        compensated = method in LIE_METHODS and jnp.dtype(dtype).itemsize < 8
+        c0 = jnp.zeros_like(q_start) if compensated else None
+        state = (q_start, c0, omega_start)
+    stats = None
+    if statistics:
+        zeros = jax.device_put(jnp.zeros((padded,), dtype), sharding)
+        stats = (zeros, zeros)
+
+    if chunk_size is None:
+        chunk_size = _default_chunk(num_steps, num_bodies, save_every)
+    elif save_every:
+        chunk_size = save_every * max(1, -(-chunk_size // save_every))
+    block = save_every or chunk_size
+
+    config = dict(
+        dynamic=dynamic,
+        frame=frame,
+        method=method,
+        omega_fn=omega_fn,
+        torque=torque,
+        save=save_every is not None,
+        sharding=sharding,
+        compensated=compensated,
+        renormalize_every=_RENORMALIZE_EVERY,
+        unroll=_UNROLL,
+    )
+    config = tuple(sorted(config.items()))
+    dt_device = jnp.asarray(dt_array, time_dtype)
+    t0_device = jnp.asarray(t0, time_dtype)
+
+    saved_steps = list(range(0, num_steps + 1, save_every)) if save_every else []
+    times = float(t0) + float(dt) * np.asarray(saved_steps, np.float64) if save_every else None
+    writer = None
+    if path is not None and jax.process_index() == 0:
+        metadata = dict(
+            batch_shape=list(batch),
+            dtype=jnp.dtype(dtype).name,
+            dynamic=dynamic,
+            frame=frame,
+            method=method,
+            dt=float(dt),
+            t0=float(t0),
+            num_steps=num_steps,
+            save_every=save_every,
+            num_bodies=num_bodies,
+            num_devices=num_devices,
+        )
+        writer = _StateWriter(path, metadata)
+
+    def unpad_time_major(x, width):
+        return x[:, :num_bodies].reshape((x.shape[0],) + batch + (width,))
+
+    def keep_or_write(saved, steps, steps_done):
+        if writer is not None:
+            arrays = {"states": unpad_time_major(_to_host(saved[0]), 4)}
+            if dynamic:
+                arrays["omegas"] = unpad_time_major(_to_host(saved[1]), 3)
+            writer.write_record(arrays, steps, steps_done=steps_done)
+        elif path is None:
+            kept.append(saved)
+
+    kept: list[tuple[Array, ...]] = []
+    if save_every:
+        initial = (q_start, omega_start) if dynamic else (q_start,)
+        keep_or_write(tuple(x[None] for x in initial), [0], 0)
+
+    bar = None
+    if progress is True:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=num_steps, unit="step", file=sys.stderr, desc="ensemble", leave=False)
+
+    def finish_chunk(pending):
+        chunk_state, saved, steps, steps_done = pending
+        if saved is not None:
+            keep_or_write(saved, steps, steps_done)
+        else:
+            jax.block_until_ready(chunk_state)
+            if writer is not None:
+                writer.progress(steps_done)
+        if bar is not None:
+            bar.update(steps_done - bar.n)
+        elif callable(progress) and progress is not True:
+            progress(steps_done, num_steps)
+
+    starts = list(range(0, num_steps, chunk_size))
+    pending = None
+    try:
+        for start in starts:
+            length = min(chunk_size, num_steps - start)
+            n_blocks, tail = divmod(length, block)
+            state, stats, saved = _run_chunk(
+                state,
+                stats,
+                q_start,
+                dt_device,
+                t0_device,
+                jnp.asarray(start, jnp.int32),
+                n_blocks=n_blocks,
+                block=block,
+                tail=tail,
+                config=config,
+            )
+            steps = [s for s in saved_steps if start < s <= start + length]
+            # Dispatch is asynchronous: the next chunk computes while the host handles this one.
+            if pending is not None:
+                finish_chunk(pending)
+            pending = (state, saved, steps, start + length)
+        if pending is not None:
+            finish_chunk(pending)
+    finally:
+        if bar is not None:
+            bar.close()
+
+    def unpad(x):
+        if padded != num_bodies:
+            x = x[:num_bodies]
+        return x.reshape(batch + x.shape[1:])
+
+    final = state[0]
+    if dynamic:
+        final_omega = state[1] if frame == "body" else _to_world(state[1], final)
+    elif omega_fn is not None:
+        t_end = t0_device + jnp.asarray(num_steps, time_dtype) * dt_device
+        final_omega = jnp.broadcast_to(omega_fn(t_end, final), final.shape[:-1] + (3,)).astype(
+            dtype
+        )
+    else:
+        final_omega = omega_start
+    angle_from_start = _angle_between(q_start, final)
+    final, final_omega, angle_from_start = unpad(final), unpad(final_omega), unpad(angle_from_start)
+    total_angle = unpad(stats[0]) if statistics else None
+    max_angle = unpad(stats[1]) if statistics else None
+    saved_q = saved_w = None
+    if kept:
+        saved_q = unpad_time_major(jnp.concatenate([k[0] for k in kept], axis=0), 4)
+        if dynamic:
+            saved_w = unpad_time_major(jnp.concatenate([k[1] for k in kept], axis=0), 3)
+    if writer is not None:
+        arrays = {"final": final, "final_omega": final_omega, "angle_from_start": angle_from_start}
+        if statistics:
+            arrays.update(total_angle=total_angle, max_angle_from_start=max_angle)
+        writer.finish({k: _to_host(v) for k, v in arrays.items()})
+    jax.block_until_ready((final, final_omega))
+    return EnsembleResult(
+        final=final,
+        final_omega=final_omega,
+        saved=saved_q,
+        saved_omega=saved_w,
+        times=times,
+        angle_from_start=angle_from_start,
+        total_angle=total_angle,
+        max_angle_from_start=max_angle,
+        num_steps=num_steps,
+        num_chunks=len(starts),
+        path=None if path is None else os.fspath(path),
+        seconds=time.perf_counter() - started,
+    )
