@@ -1,0 +1,12 @@
+"""Run jaxquat's benchmark suite: `python benchmarks/run.py [--preset quick|full] [--output DIR]`.
+
+A thin wrapper around `jaxquat._bench.main` (the same as `python -m jaxquat bench`); see
+`benchmarks/README.md`.
+"""
+
+import sys
+
+from jaxquat._bench import main
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,1511 @@
+"""The benchmark suite: jaxquat's integrators against SciPy, numpy-quaternion, jaxlie and plain JAX.
+
+Run it as `python -m jaxquat bench [--preset quick|full] [--output DIR]` or
+`python benchmarks/run.py [...]`; the entry point is `main(argv)`.
+
+Workloads (N bodies, T steps of Δt, world frame, every result checked against a closed form before
+it is timed — a fast wrong answer does not count):
+
+- **W1** constant per-body ω, keep only the final orientation;
+- **W2** the same, keep the whole time-major trajectory `(T + 1, N, 4)`;
+- **W3** ω sampled per step from a time-major `(T, N, 3)` array (piecewise constant). The samples are
+  those of a two-axis motion q(t) = exp(a t) ⊗ exp(b t) ⊗ q₀, so the exact final orientation is known;
+- **W4** coning ω(t) given as a function: work–precision (final error against the closed form vs wall
+  time) of jaxquat's methods and diffrax solvers, numpy-quaternion's DOP853 integrator and stock
+  diffrax Tsit5 → a PNG;
+- **W5** `jax.grad` of a loss on the final orientations w.r.t. all ω (constant ω of W1 and sampled ω
+  of W3), time relative to the forward pass.
+
+Hygiene (STYLE.md rule 22): every JAX contender is compiled ahead of time (compile time reported
+separately), results are blocked on (`block_until_ready`), contenders of one row are timed
+interleaved, in alternating order, and the median of the repeats is reported, as body-steps per second
+and as the ratio to the best peer of the row. Peers that would take longer than the preset's budget
+per call are timed on fewer steps (marked †; their cost per step is constant, so the rate is
+unaffected) — jaxquat is always timed on all T steps. Peers are imported lazily and skipped, with a
+note, when they are not installed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import json
+import math
+import os
+import platform
+import statistics
+import sys
+import time
+import warnings
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+# ----------------------------------------------------------------------------------------------------
+# Configuration
+
+
+@dataclasses.dataclass(frozen=True)
+class Preset:
+    """What one run of the suite measures."""
+
+    sizes: tuple[int, ...]  # numbers of bodies N for W1–W3
+    num_steps: int  # T
+    dtypes: tuple[str, ...]
+    repeats: int  # interleaved timing rounds per row (the median is reported)
+    budget: float  # seconds one timed call of a peer may take before it is timed on fewer steps
+    workloads: tuple[str, ...]
+    w4_steps: tuple[int, ...]  # step counts swept by the fixed-step methods in W4
+    w4_tolerances: tuple[float, ...]  # tolerances swept by the adaptive methods in W4
+    w4_repeats: int
+    w5_sizes: tuple[int, ...]
+    reference: bool  # also time the tuned hand-written JAX loop (not a peer; a yardstick)
+    w4_methods: tuple[str, ...] = ("euler", "midpoint", "magnus4", "cf4")  # of `integrate`
+    w4_solvers: tuple[str, ...] = ("LieEuler", "ExpMidpoint", "Magnus4", "CF4", "RKMK45")  # diffrax
+    w5_dtypes: tuple[str, ...] | None = None  # None: the same as `dtypes`
+    w5_variants: tuple[str, ...] = ("constant", "sampled")  # which ω W5 differentiates w.r.t.
+    sample_seconds: float = 0.01  # shorter calls are repeated within one timing sample
+
+
+PRESETS: dict[str, Preset] = {
+    # For the smoke test: every code path, tiny sizes, seconds.
+    "micro": Preset(
+        sizes=(3,),
+        num_steps=20,
+        dtypes=("float64", "float32"),
+        repeats=2,
+        budget=0.2,
+        workloads=("W1", "W2", "W3", "W4", "W5"),
+        w4_steps=(256,),
+        w4_tolerances=(1e-9,),
+        w4_repeats=1,
+        w5_sizes=(3,),
+        reference=True,
+        w4_methods=("euler", "magnus4"),
+        w4_solvers=("Magnus4",),
+        w5_dtypes=("float64",),
+        w5_variants=("sampled",),
+        sample_seconds=0.002,
+    ),
+    "quick": Preset(
+        sizes=(1000, 100_000),
+        num_steps=1000,
+        dtypes=("float64",),
+        repeats=3,
+        budget=0.6,
+        workloads=("W1", "W2", "W3", "W4", "W5"),
+        w4_steps=(64, 256, 1024, 4096),
+        w4_tolerances=(1e-6, 1e-8, 1e-10, 1e-12),
+        w4_repeats=3,
+        w5_sizes=(1000,),
+        reference=False,
+    ),
+    "full": Preset(
+        sizes=(1, 1000, 100_000),
+        num_steps=1000,
+        dtypes=("float64", "float32"),
+        repeats=5,
+        budget=12.0,
+        workloads=("W1", "W2", "W3", "W4", "W5"),
+        w4_steps=(16, 32, 64, 128, 256, 512, 1024, 2048, 4096, 8192, 16384),
+        w4_tolerances=(1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12, 1e-13),
+        w4_repeats=5,
+        w5_sizes=(1, 1000, 100_000),
+        reference=True,
+    ),
+}
+
+DT = 0.01  # s; with the sampled rates below |ω|Δt is a few 1e-2 rad per step, typical of real data
+# Maximum angle error (rad) of a final orientation against the closed form, and of |q| − 1.
+ERROR_TOLERANCE = {"float64": 1e-9, "float32": 2e-3}
+NORM_TOLERANCE = {"float64": 1e-9, "float32": 1e-3}
+W4_TARGET_ERROR = 1e-8
+
+# ----------------------------------------------------------------------------------------------------
+# Independent quaternion helpers (generic over numpy / jax.numpy; used for the references and by the
+# hand-written peers, never jaxquat's own code).
+
+
+def _q_mul(p, q, xp):
+    pw, px, py, pz = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
+    qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return xp.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        axis=-1,
+    )
+
+
+def _q_conj(q, xp):
+    return xp.concatenate([q[..., :1], -q[..., 1:]], axis=-1)
+
+
+def _q_exp(v, xp):
+    """Unit quaternion of the rotation vector v (series below θ² = 1e-8, NaN-free gradients)."""
+    theta_sq = xp.sum(v * v, axis=-1)
+    small = theta_sq < 1e-8
+    theta = xp.sqrt(xp.where(small, 1.0, theta_sq))
+    real = xp.where(small, 1.0 - theta_sq / 8.0, xp.cos(0.5 * theta))
+    imag = xp.where(small, 0.5 - theta_sq / 48.0, xp.sin(0.5 * theta) / theta)
+    return xp.concatenate([real[..., None], imag[..., None] * v], axis=-1)
+
+
+def _q_log(q, xp):
+    """Rotation vector of the unit quaternion q (shortest rotation)."""
+    q = xp.where(q[..., :1] < 0, -q, q)
+    v = q[..., 1:]
+    s_sq = xp.sum(v * v, axis=-1)
+    small = s_sq < 1e-24
+    s = xp.sqrt(xp.where(small, 1.0, s_sq))
+    coef = xp.where(small, 2.0 / q[..., 0], 2.0 * xp.arctan2(s, q[..., 0]) / s)
+    return coef[..., None] * v
+
+
+def _q_rotate(q, v, xp):
+    zero = xp.zeros_like(v[..., :1])
+    return _q_mul(_q_mul(q, xp.concatenate([zero, v], axis=-1), xp), _q_conj(q, xp), xp)[..., 1:]
+
+
+def angle_error(p, q) -> np.ndarray:
+    """Geodesic angle (rad) between the rotations p and q, computed in float64 (sign-invariant)."""
+    p = np.asarray(p, dtype=np.float64)
+    q = np.asarray(q, dtype=np.float64)
+    r = _q_mul(_q_conj(q, np), p, np)
+    return 2.0 * np.arctan2(np.linalg.norm(r[..., 1:], axis=-1), np.abs(r[..., 0]))
+
+
+def _loss(q_final, target, xp):
+    """Σ |vec(r* ⊗ q)|²: smooth, sign-invariant loss on final orientations (NUMERICS.md §4)."""
+    r = _q_mul(_q_conj(target, xp), q_final, xp)
+    return xp.sum(r[..., 1:] * r[..., 1:])
+
+
+# ----------------------------------------------------------------------------------------------------
+# Problems
+
+
+@dataclasses.dataclass
+class Problem:
+    """The data of one W1–W3 row and its closed-form answers."""
+
+    workload: str
+    dtype: str
+    num_bodies: int
+    num_steps: int
+    q0: np.ndarray  # (N, 4) in `dtype`
+    omega: np.ndarray  # (N, 3): W1/W2 the constant ω; W3 the first axis a of the motion
+    spin: np.ndarray | None  # (N, 3): W3 the second axis b
+    omegas: Any = None  # W3: (T, N, 3) samples, a jax array in `dtype`
+    dt: float = DT
+
+    def expected(self, num_steps: int) -> np.ndarray:
+        """Closed-form final orientations after `num_steps` steps, float64 `(N, 4)`."""
+        q0 = self.q0.astype(np.float64)
+        t = num_steps * self.dt
+        rotation = _q_exp(self.omega.astype(np.float64) * t, np)
+        if self.spin is not None:
+            rotation = _q_mul(rotation, _q_exp(self.spin * t, np), np)
+        return _q_mul(rotation, q0, np)
+
+    def trajectory_error(self, qs: np.ndarray, chunk: int = 64) -> float:
+        """Max angle error of a time-major trajectory `(K + 1, N, 4)` against the closed form."""
+        q0 = self.q0.astype(np.float64)
+        omega = self.omega.astype(np.float64)
+        worst = 0.0
+        for start in range(0, qs.shape[0], chunk):
+            stop = min(start + chunk, qs.shape[0])
+            steps = np.arange(start, stop, dtype=np.float64)[:, None, None]
+            expected = _q_mul(_q_exp(steps * self.dt * omega[None], np), q0[None], np)
+            worst = max(worst, float(np.max(angle_error(qs[start:stop], expected))))
+        return worst
+
+
+def _sampled_rates(a, b, dt, num_steps):
+    """The piecewise-constant ω_k (k = 0..T−1, time-major) that maps q_k to q_{k+1} exactly for
+    q(t) = exp(a t) ⊗ exp(b t) ⊗ q₀: ω_k = log(exp(R(exp(a t_{k+1})) b Δt) ⊗ exp(a Δt))/Δt."""
+    import jax
+    import jax.numpy as jnp
+
+    @jax.jit
+    def rates(a, b):
+        k = jnp.arange(1, num_steps + 1, dtype=a.dtype)[:, None, None]
+        outer = _q_exp(k * dt * a[None], jnp)
+        spun = _q_rotate(outer, jnp.broadcast_to(b[None] * dt, outer.shape[:-1] + (3,)), jnp)
+        step = _q_mul(
+            _q_exp(spun, jnp), jnp.broadcast_to(_q_exp(a * dt, jnp)[None], outer.shape), jnp
+        )
+        return _q_log(step, jnp) / dt
+
+    return rates(jnp.asarray(a, dtype=jnp.float64), jnp.asarray(b, dtype=jnp.float64))
+
+
+def make_problem(
+    workload: str, dtype: str, num_bodies: int, num_steps: int, seed: int = 0
+) -> Problem:
+    """Random initial orientations and rates (N(0, 2²) rad/s per component) for one row."""
+    import jax.numpy as jnp
+
+    rng = np.random.default_rng([seed, num_bodies, num_steps, int(workload[1:])])
+    q0 = rng.normal(size=(num_bodies, 4))
+    q0 /= np.linalg.norm(q0, axis=-1, keepdims=True)
+    omega = 2.0 * rng.normal(size=(num_bodies, 3))
+    spin = None
+    omegas = None
+    if workload == "W3":
+        spin = 2.0 * rng.normal(size=(num_bodies, 3))
+        omegas = _sampled_rates(omega, spin, DT, num_steps).astype(jnp.dtype(dtype))
+    return Problem(
+        workload=workload,
+        dtype=dtype,
+        num_bodies=num_bodies,
+        num_steps=num_steps,
+        q0=q0.astype(dtype),
+        omega=omega.astype(dtype),
+        spin=spin,
+        omegas=omegas,
+    )
+
+
+# ----------------------------------------------------------------------------------------------------
+# Contenders for W1–W3
+
+
+@dataclasses.dataclass
+class Runner:
+    """One contender compiled for one row: `run()` does the work once and returns the orientations."""
+
+    run: Callable[[], Any]
+    compile_seconds: float | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Contender:
+    name: str
+    role: str  # "jaxquat", "peer" or "reference" (a yardstick, not counted as a peer)
+    make: Callable[[Problem, int], Runner]  # (problem, steps to run) → runner
+    workloads: tuple[str, ...]
+    requires: tuple[str, ...] = ()  # importable modules it needs
+    is_jax: bool = True
+    note: str = ""
+
+
+def _compiled(function, *args) -> Runner:
+    """Compile `function(*args)` ahead of time; the runner calls the executable."""
+    import jax
+
+    start = time.perf_counter()
+    compiled = jax.jit(function).lower(*args).compile()
+    seconds = time.perf_counter() - start
+    return Runner(run=lambda: compiled(*args), compile_seconds=seconds)
+
+
+def _jax_inputs(problem: Problem, num_steps: int):
+    import jax.numpy as jnp
+
+    q0 = jnp.asarray(problem.q0)
+    if problem.workload == "W3":
+        omegas = problem.omegas
+        return q0, (omegas if num_steps == omegas.shape[0] else omegas[:num_steps])
+    return q0, jnp.asarray(problem.omega)
+
+
+def _load_integrate():
+    from . import _integrate
+
+    return _integrate.integrate, _integrate.sampled
+
+
+def _make_jaxquat(problem: Problem, num_steps: int) -> Runner:
+    integrate, sampled = _load_integrate()
+    dt = problem.dt
+    save = "all" if problem.workload == "W2" else "final"
+    if problem.workload == "W3":
+
+        def function(q0, omegas):
+            return integrate(q0, sampled(omegas, dt), dt, num_steps, save=save)
+
+    else:
+
+        def function(q0, omega):
+            return integrate(q0, omega, dt, num_steps, save=save)
+
+    return _compiled(function, *_jax_inputs(problem, num_steps))
+
+
+def _make_jax_loop(problem: Problem, num_steps: int) -> Runner:
+    """The plain hand-written loop: lax.scan over time, an `(N, 4)` carry, exp map per step."""
+    import jax.numpy as jnp
+    from jax import lax
+
+    dt = problem.dt
+
+    def advance(q, omega):
+        return _q_mul(_q_exp(omega * dt, jnp), q, jnp)
+
+    if problem.workload == "W3":
+
+        def function(q0, omegas):
+            return lax.scan(lambda q, w: (advance(q, w), None), q0, omegas)[0]
+
+    elif problem.workload == "W2":
+
+        def function(q0, omega):
+            _, qs = lax.scan(lambda q, _: (advance(q, omega),) * 2, q0, None, length=num_steps)
+            return jnp.concatenate([q0[None], qs], axis=0)
+
+    else:
+
+        def function(q0, omega):
+            return lax.scan(lambda q, _: (advance(q, omega), None), q0, None, length=num_steps)[0]
+
+    return _compiled(function, *_jax_inputs(problem, num_steps))
+
+
+def _make_jax_tuned(problem: Problem, num_steps: int) -> Runner:
+    """The tuned hand-written loop of PERFORMANCE.md: step hoisted, structure-of-arrays carry, unroll=8."""
+    import jax.numpy as jnp
+    from jax import lax
+
+    dt = problem.dt
+
+    def function(q0, omega):
+        sw, sx, sy, sz = (c for c in jnp.moveaxis(_q_exp(omega * dt, jnp), -1, 0))
+
+        def body(carry, _):
+            w, x, y, z = carry
+            return (
+                sw * w - sx * x - sy * y - sz * z,
+                sw * x + sx * w + sy * z - sz * y,
+                sw * y - sx * z + sy * w + sz * x,
+                sw * z + sx * y - sy * x + sz * w,
+            ), None
+
+        carry = tuple(jnp.moveaxis(q0, -1, 0))
+        carry, _ = lax.scan(body, carry, None, length=num_steps, unroll=8)
+        return jnp.stack(carry, axis=-1)
+
+    return _compiled(function, *_jax_inputs(problem, num_steps))
+
+
+def _make_jaxlie(problem: Problem, num_steps: int) -> Runner:
+    """jaxlie as its docs suggest: per-body `SO3.exp(ω dt) @ R`, vmapped over bodies, scanned over time."""
+    import jax
+    import jax.numpy as jnp
+    import jaxlie
+    from jax import lax
+
+    dt = problem.dt
+    advance = jax.vmap(lambda q, w: (jaxlie.SO3.exp(w * dt) @ jaxlie.SO3(q)).wxyz)
+
+    if problem.workload == "W3":
+
+        def function(q0, omegas):
+            return lax.scan(lambda q, w: (advance(q, w), None), q0, omegas)[0]
+
+    elif problem.workload == "W2":
+
+        def function(q0, omega):
+            _, qs = lax.scan(lambda q, _: (advance(q, omega),) * 2, q0, None, length=num_steps)
+            return jnp.concatenate([q0[None], qs], axis=0)
+
+    else:
+
+        def function(q0, omega):
+            return lax.scan(lambda q, _: (advance(q, omega), None), q0, None, length=num_steps)[0]
+
+    return _compiled(function, *_jax_inputs(problem, num_steps))
+
+
+def _numpy_rates(problem: Problem, num_steps: int):
+    if problem.workload == "W3":
+        return np.asarray(problem.omegas[:num_steps])
+    return problem.omega
+
+
+def _make_scipy(precomputed: bool):
+    def make(problem: Problem, num_steps: int) -> Runner:
+        from scipy.spatial.transform import Rotation
+
+        dt = problem.dt
+        q0 = problem.q0
+        rates = _numpy_rates(problem, num_steps)
+
+        def run():
+            r = Rotation.from_quat(q0, scalar_first=True)
+            trajectory = None
+            if problem.workload == "W2":
+                trajectory = np.empty((num_steps + 1,) + q0.shape, dtype=np.float64)
+                trajectory[0] = q0
+            step = Rotation.from_rotvec(rates * dt) if precomputed else None
+            for k in range(num_steps):
+                if problem.workload == "W3":
+                    r = Rotation.from_rotvec(rates[k] * dt) * r
+                else:
+                    r = (step if precomputed else Rotation.from_rotvec(rates * dt)) * r
+                if trajectory is not None:
+                    trajectory[k + 1] = r.as_quat(scalar_first=True)
+            return trajectory if trajectory is not None else r.as_quat(scalar_first=True)
+
+        return Runner(run=run)
+
+    return make
+
+
+def _make_numpy_quaternion(precomputed: bool):
+    def make(problem: Problem, num_steps: int) -> Runner:
+        import quaternion
+
+        dt = problem.dt
+        q0 = quaternion.as_quat_array(np.ascontiguousarray(problem.q0, dtype=np.float64))
+        rates = _numpy_rates(problem, num_steps)
+
+        def run():
+            if problem.workload == "W2":
+                trajectory = np.empty((num_steps + 1,) + q0.shape, dtype=quaternion.quaternion)
+                trajectory[0] = q0
+                step = quaternion.from_rotation_vector(rates * dt) if precomputed else None
+                for k in range(num_steps):
+                    s = step if precomputed else quaternion.from_rotation_vector(rates * dt)
+                    np.multiply(s, trajectory[k], out=trajectory[k + 1])
+                return quaternion.as_float_array(trajectory)
+            q = q0.copy()
+            if problem.workload == "W3":
+                for k in range(num_steps):
+                    q = quaternion.from_rotation_vector(rates[k] * dt) * q
+            elif precomputed:
+                step = quaternion.from_rotation_vector(rates * dt)
+                for _ in range(num_steps):
+                    np.multiply(step, q, out=q)
+            else:
+                for _ in range(num_steps):
+                    q = quaternion.from_rotation_vector(rates * dt) * q
+            return quaternion.as_float_array(q)
+
+        return Runner(run=run)
+
+    return make
+
+
+CONTENDERS: tuple[Contender, ...] = (
+    Contender("jaxquat", "jaxquat", _make_jaxquat, ("W1", "W2", "W3")),
+    Contender(
+        "SciPy Rotation",
+        "peer",
+        _make_scipy(precomputed=False),
+        ("W1", "W2", "W3"),
+        requires=("scipy",),
+        is_jax=False,
+        note="`Rotation.from_rotvec(ω dt) * r` per step, batched; float64 internally",
+    ),
+    Contender(
+        "SciPy, step precomputed",
+        "peer",
+        _make_scipy(precomputed=True),
+        ("W1", "W2"),
+        requires=("scipy",),
+        is_jax=False,
+        note="`s = Rotation.from_rotvec(ω dt)` once, then `s * r` per step",
+    ),
+    Contender(
+        "numpy-quaternion",
+        "peer",
+        _make_numpy_quaternion(precomputed=False),
+        ("W1", "W2", "W3"),
+        requires=("quaternion",),
+        is_jax=False,
+        note="`from_rotation_vector(ω dt) * q` per step, vectorised over bodies; float64 internally",
+    ),
+    Contender(
+        "numpy-quaternion, step precomputed",
+        "peer",
+        _make_numpy_quaternion(precomputed=True),
+        ("W1", "W2"),
+        requires=("quaternion",),
+        is_jax=False,
+        note="step quaternion formed once, then `np.multiply(s, q, out=...)` per step",
+    ),
+    Contender(
+        "jaxlie",
+        "peer",
+        _make_jaxlie,
+        ("W1", "W2", "W3"),
+        requires=("jaxlie",),
+        note="`SO3.exp(ω dt) @ R` under jit + vmap (bodies) + scan (time)",
+    ),
+    Contender(
+        "JAX loop",
+        "peer",
+        _make_jax_loop,
+        ("W1", "W2", "W3"),
+        note="plain hand-written exp-map step in `lax.scan`, `(N, 4)` carry",
+    ),
+    Contender(
+        "ref: tuned JAX",
+        "reference",
+        _make_jax_tuned,
+        ("W1",),
+        note="hand-written, step hoisted, structure-of-arrays carry, `unroll=8` (a yardstick, not a peer)",
+    ),
+)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Timing
+
+
+def _block(x):
+    import jax
+
+    return jax.block_until_ready(x)
+
+
+def _timed(run: Callable[[], Any]) -> tuple[float, Any]:
+    start = time.perf_counter()
+    out = _block(run())
+    return time.perf_counter() - start, out
+
+
+def _missing(modules: Sequence[str]) -> str | None:
+    import importlib.util
+
+    for module in modules:
+        if importlib.util.find_spec(module) is None:
+            return module
+    return None
+
+
+def _check(problem: Problem, steps: int, out) -> tuple[float, float]:
+    """(max angle error against the closed form, max ||q| − 1|) of a contender's result."""
+    out = np.asarray(out)
+    if problem.workload == "W2":
+        expected_shape = (steps + 1, problem.num_bodies, 4)
+        if out.shape != expected_shape:
+            raise ValueError(f"trajectory of shape {out.shape}, expected {expected_shape}")
+        error = problem.trajectory_error(out)
+        norm = float(np.max(np.abs(np.linalg.norm(out[-1].astype(np.float64), axis=-1) - 1.0)))
+        return error, norm
+    if out.shape != (problem.num_bodies, 4):
+        raise ValueError(f"result of shape {out.shape}, expected {(problem.num_bodies, 4)}")
+    error = float(np.max(angle_error(out, problem.expected(steps))))
+    norm = float(np.max(np.abs(np.linalg.norm(out.astype(np.float64), axis=-1) - 1.0)))
+    return error, norm
+
+
+def run_row(problem: Problem, preset: Preset, log: Callable[[str], None]) -> dict:
+    """Check, compile and time every contender of one W1–W3 row, interleaved; returns the row record."""
+    T, N = problem.num_steps, problem.num_bodies
+    record: dict[str, Any] = {
+        "workload": problem.workload,
+        "dtype": problem.dtype,
+        "num_bodies": N,
+        "num_steps": T,
+        "contenders": {},
+    }
+    runners: dict[str, tuple[Runner, int, int]] = {}
+    for contender in CONTENDERS:
+        if problem.workload not in contender.workloads:
+            continue
+        if contender.role == "reference" and not preset.reference:
+            continue
+        entry: dict[str, Any] = {"role": contender.role, "note": contender.note}
+        record["contenders"][contender.name] = entry
+        missing = _missing(contender.requires)
+        if missing is not None:
+            entry["skipped"] = f"`{missing}` is not installed (pip install 'jaxquat[bench]')"
+            log(f"  {contender.name}: skipped, {entry['skipped']}")
+            continue
+        try:
+            steps = T
+            if contender.role == "peer" and (not contender.is_jax or N * T > 10**6):
+                # A pilot on a few steps estimates the cost; slow peers are timed on fewer steps.
+                pilot_steps = min(T, 10 if contender.is_jax else 3)
+                pilot = contender.make(problem, pilot_steps)
+                pilot_seconds = min(_timed(pilot.run)[0] for _ in range(2))
+                estimate = pilot_seconds * T / pilot_steps
+                if estimate > preset.budget:
+                    steps = max(pilot_steps, int(T * preset.budget / estimate))
+            runner = contender.make(problem, steps)
+            seconds, out = _timed(runner.run)
+            error, norm_error = _check(problem, steps, out)
+            del out
+        except ImportError as e:
+            entry["skipped"] = f"not available ({e})"
+            log(f"  {contender.name}: skipped, {entry['skipped']}")
+            continue
+        except Exception as e:  # a contender that fails is reported, never hides the others
+            entry["failed"] = f"{type(e).__name__}: {e}"
+            log(f"  {contender.name}: FAILED, {entry['failed']}")
+            continue
+        entry.update(
+            steps_timed=steps,
+            compile_seconds=runner.compile_seconds,
+            error=error,
+            norm_error=norm_error,
+            correct=bool(
+                error <= ERROR_TOLERANCE[problem.dtype]
+                and norm_error <= NORM_TOLERANCE[problem.dtype]
+            ),
+        )
+        if not entry["correct"]:
+            log(
+                f"  {contender.name}: WRONG (error {error:.2e} rad, |q|-1 {norm_error:.1e}); not timed"
+            )
+            continue
+        # Calls shorter than ~10 ms are repeated within one sample to beat the clock's resolution.
+        number = max(1, min(1000, int(preset.sample_seconds / max(seconds, 1e-7))))
+        runners[contender.name] = (runner, steps, number)
+        entry["samples"] = []
+
+    names = list(runners)
+    for round_index in range(preset.repeats):
+        for name in names if round_index % 2 == 0 else reversed(names):
+            runner, steps, number = runners[name]
+            start = time.perf_counter()
+            for _ in range(number):
+                out = _block(runner.run())
+                del out
+            record["contenders"][name]["samples"].append((time.perf_counter() - start) / number)
+
+    for name in names:
+        entry = record["contenders"][name]
+        entry["seconds"] = statistics.median(entry["samples"])
+        entry["rate"] = N * entry["steps_timed"] / entry["seconds"]
+    _rank(record)
+    return record
+
+
+def _rank(record: dict) -> None:
+    """Add the best peer of a row and every contender's ratio to it."""
+    contenders = record["contenders"]
+    peers = {n: e for n, e in contenders.items() if e["role"] == "peer" and "rate" in e}
+    if not peers:
+        record["best_peer"] = None
+        return
+    best = max(peers, key=lambda n: peers[n]["rate"])
+    record["best_peer"] = best
+    for entry in contenders.values():
+        if "rate" in entry:
+            entry["ratio_to_best_peer"] = entry["rate"] / peers[best]["rate"]
+
+
+# ----------------------------------------------------------------------------------------------------
+# W4: coning, work–precision
+
+# q(t) = exp(a t) ⊗ exp(b t) ⊗ q₀ with a along z (precession) and b tilted (spin): in the world frame
+# ω(t) = a + R(exp(a t)) b, a vector sweeping a cone about z. Final time: a non-integer number of turns.
+CONING_PRECESSION = (0.0, 0.0, 1.7)
+CONING_SPIN = (2.5 * math.sin(0.6), 0.0, 2.5 * math.cos(0.6))
+CONING_INITIAL = (0.9, 0.1, -0.3, 0.2)
+CONING_END = 6.3
+
+
+def coning_omega(t, xp=np):
+    """World-frame ω(t) = a + R(exp(a t)) b of the coning motion."""
+    a = xp.asarray(CONING_PRECESSION, dtype=xp.float64)
+    b = xp.asarray(CONING_SPIN, dtype=xp.float64)
+    return a + _q_rotate(_q_exp(a * t, xp), b, xp)
+
+
+def coning_exact(t) -> np.ndarray:
+    """The closed-form orientation of the coning motion at time t (float64 `(4,)`)."""
+    q0 = np.asarray(CONING_INITIAL) / np.linalg.norm(CONING_INITIAL)
+    a = np.asarray(CONING_PRECESSION)
+    b = np.asarray(CONING_SPIN)
+    return _q_mul(_q_mul(_q_exp(a * t, np), _q_exp(b * t, np), np), q0, np)
+
+
+def _autorange(function: Callable[[], Any], repeats: int, sample_seconds: float = 0.02) -> float:
+    """Median seconds per call, repeating short calls within each sample."""
+    seconds, _ = _timed(function)
+    number = max(1, min(10000, int(sample_seconds / max(seconds, 1e-7))))
+    samples = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for _ in range(number):
+            _block(function())
+        samples.append((time.perf_counter() - start) / number)
+    return statistics.median(samples)
+
+
+def _w4_series(preset: Preset, log: Callable[[str], None]) -> list[dict]:
+    import jax
+    import jax.numpy as jnp
+
+    t_end = CONING_END
+    exact = coning_exact(t_end)
+    q0 = jnp.asarray(coning_exact(0.0))
+    series: list[dict] = []
+
+    def add(name, role, points, note="", **extra):
+        series.append({"name": name, "role": role, "points": points, "note": note, **extra})
+        if points:
+            best = min(p["error"] for p in points)
+            log(f"  {name}: {len(points)} points, best error {best:.1e}")
+
+    def omega(t, q=None):
+        return coning_omega(t, jnp)
+
+    # jaxquat's fixed-step integrators.
+    try:
+        integrate, _ = _load_integrate()
+    except ImportError as e:
+        log(f"  jaxquat integrate: skipped ({e})")
+        integrate = None
+    if integrate is not None:
+        for method in preset.w4_methods:
+            points, compile_seconds = [], 0.0
+            try:
+                for steps in preset.w4_steps:
+                    runner = _compiled(
+                        lambda q0, steps=steps, method=method: integrate(
+                            q0, omega, t_end / steps, steps, method=method, save="final"
+                        ),
+                        q0,
+                    )
+                    compile_seconds += runner.compile_seconds or 0.0
+                    error = float(angle_error(runner.run(), exact))
+                    seconds = _autorange(runner.run, preset.w4_repeats, 2 * preset.sample_seconds)
+                    points.append({"steps": steps, "error": error, "seconds": seconds})
+            except Exception as e:
+                log(f"  jaxquat integrate {method}: FAILED {type(e).__name__}: {e}")
+            add(f"jaxquat integrate {method}", "jaxquat", points, compile_seconds=compile_seconds)
+
+    # diffrax: jaxquat's solvers and stock Tsit5.
+    if _missing(("diffrax",)) is None:
+        import diffrax
+
+        def solve(term, solver, controller_of, dt0_of):
+            def function(y0, parameter):
+                solution = diffrax.diffeqsolve(
+                    term,
+                    solver,
+                    0.0,
+                    t_end,
+                    dt0_of(parameter),
+                    y0,
+                    stepsize_controller=controller_of(parameter),
+                    saveat=diffrax.SaveAt(t1=True),
+                    max_steps=2**17,
+                )
+                return solution.ys[-1], solution.stats["num_steps"]
+
+            return function
+
+        def sweep(name, role, function, parameters, kind, note=""):
+            points = []
+            try:
+                start = time.perf_counter()
+                compiled = jax.jit(function).lower(q0, jnp.asarray(parameters[0])).compile()
+                compile_seconds = time.perf_counter() - start
+                for parameter in parameters:
+                    p = jnp.asarray(parameter)
+                    y, steps = compiled(q0, p)
+                    seconds = _autorange(
+                        lambda p=p: compiled(q0, p), preset.w4_repeats, 2 * preset.sample_seconds
+                    )
+                    points.append(
+                        {
+                            kind: parameter,
+                            "steps": int(steps),
+                            "error": float(angle_error(y, exact)),
+                            "seconds": seconds,
+                        }
+                    )
+            except Exception as e:
+                log(f"  {name}: FAILED {type(e).__name__}: {e}")
+                compile_seconds = None
+            add(name, role, points, note=note, compile_seconds=compile_seconds)
+
+        def plain_rate(t, y, args):
+            w = coning_omega(t, jnp)
+            return 0.5 * _q_mul(jnp.concatenate([jnp.zeros_like(w[:1]), w]), y, jnp)
+
+        def adaptive(tolerance):
+            return diffrax.PIDController(rtol=tolerance, atol=tolerance)
+
+        sweep(
+            "diffrax Tsit5 (stock)",
+            "peer",
+            solve(diffrax.ODETerm(plain_rate), diffrax.Tsit5(), adaptive, lambda p: None),
+            list(preset.w4_tolerances),
+            "tolerance",
+            note="adaptive, rtol = atol = tolerance, plain rate ½ ω̃ q in ℝ⁴",
+        )
+        try:
+            from . import _solvers
+        except ImportError as e:
+            log(f"  jaxquat diffrax solvers: skipped ({e})")
+            _solvers = None
+        if _solvers is not None:
+            term = diffrax.ODETerm(_solvers.kinematic_vector_field(omega))
+            fixed = diffrax.ConstantStepSize()
+            dts = [t_end / steps for steps in preset.w4_steps]
+            for solver_name in [n for n in preset.w4_solvers if n != "RKMK45"]:
+                solver_class = getattr(_solvers, solver_name, None)
+                if solver_class is None:
+                    log(f"  jaxquat diffrax {solver_name}: not available")
+                    continue
+                sweep(
+                    f"jaxquat diffrax {solver_name}",
+                    "jaxquat",
+                    solve(term, solver_class(), lambda p: fixed, lambda p: p),
+                    dts,
+                    "dt",
+                )
+            if "RKMK45" in preset.w4_solvers and hasattr(_solvers, "RKMK45"):
+                sweep(
+                    "jaxquat diffrax RKMK45",
+                    "jaxquat",
+                    solve(term, _solvers.RKMK45(), adaptive, lambda p: None),
+                    list(preset.w4_tolerances),
+                    "tolerance",
+                    note="adaptive, rtol = atol = tolerance",
+                )
+    else:
+        log("  diffrax: skipped (not installed)")
+
+    # numpy-quaternion's integrate_angular_velocity (scipy's DOP853, adaptive).
+    if _missing(("quaternion", "scipy")) is None:
+        import quaternion
+
+        points = []
+        start_orientation = quaternion.from_float_array(coning_exact(0.0))
+        for tolerance in preset.w4_tolerances:
+
+            def run(tolerance=tolerance):
+                # integrate_angular_velocity resets the global warning filters; contain that.
+                with warnings.catch_warnings():
+                    return quaternion.integrate_angular_velocity(
+                        lambda t: coning_omega(t, np),
+                        0.0,
+                        t_end,
+                        R0=start_orientation,
+                        tolerance=tolerance,
+                    )
+
+            times, orientations = run()
+            final = quaternion.as_float_array(orientations[-1])
+            points.append(
+                {
+                    "tolerance": tolerance,
+                    "steps": len(times) - 1,
+                    "error": float(angle_error(final, coning_exact(times[-1]))),
+                    "seconds": _autorange(
+                        run, max(1, min(preset.w4_repeats, 3)), 2 * preset.sample_seconds
+                    ),
+                }
+            )
+        add(
+            "numpy-quaternion integrate_angular_velocity",
+            "peer",
+            points,
+            note="SciPy DOP853, atol = tolerance, rtol = 0",
+        )
+    else:
+        log("  numpy-quaternion: skipped (not installed)")
+    return series
+
+
+def time_at_error(points: Sequence[dict], target: float) -> tuple[float | None, str]:
+    """Seconds a method needs to reach `target` final error, from its work–precision points.
+
+    Interpolates log(time) linearly in log(error) along the Pareto front (points that are more
+    accurate than every cheaper point). Returns (seconds, how): how is "interpolated", "at most"
+    (already the cheapest point beats the target), or "not reached".
+    """
+    front = []
+    for point in sorted(points, key=lambda p: p["seconds"]):
+        if not front or point["error"] < front[-1]["error"]:
+            front.append(point)
+    if not front or front[-1]["error"] > target:
+        return None, "not reached"
+    if front[0]["error"] <= target:
+        return front[0]["seconds"], "at most"
+    for cheap, dear in zip(front, front[1:], strict=False):
+        if dear["error"] <= target:  # the first such pair brackets the target (front errors fall)
+            if dear["error"] <= 0.0:
+                return dear["seconds"], "at most"
+            fraction = math.log(cheap["error"] / target) / math.log(cheap["error"] / dear["error"])
+            log_seconds = math.log(cheap["seconds"]) + fraction * math.log(
+                dear["seconds"] / cheap["seconds"]
+            )
+            return math.exp(log_seconds), "interpolated"
+    return None, "not reached"
+
+
+def run_w4(preset: Preset, output: Path, log: Callable[[str], None]) -> dict:
+    series = _w4_series(preset, log)
+    for entry in series:
+        seconds, how = time_at_error(entry["points"], W4_TARGET_ERROR)
+        entry["seconds_at_target"] = seconds
+        entry["at_target"] = how
+    record: dict[str, Any] = {
+        "target_error": W4_TARGET_ERROR,
+        "t_end": CONING_END,
+        "series": series,
+    }
+    best_jaxquat = _best_at_target(series, "jaxquat")
+    record["best_jaxquat"] = best_jaxquat
+    record["speedups"] = {}
+    if best_jaxquat is not None:
+        best_seconds = next(s for s in series if s["name"] == best_jaxquat)["seconds_at_target"]
+        for entry in series:
+            if entry["role"] == "peer" and entry["seconds_at_target"] is not None:
+                record["speedups"][entry["name"]] = entry["seconds_at_target"] / best_seconds
+    png = output / "w4_work_precision.png"
+    try:
+        _plot_w4(series, png)
+        record["png"] = png.name
+    except Exception as e:  # the table and JSON matter more than the picture
+        log(f"  W4 plot failed: {type(e).__name__}: {e}")
+    return record
+
+
+def _best_at_target(series: Sequence[dict], role: str) -> str | None:
+    candidates = [s for s in series if s["role"] == role and s["seconds_at_target"] is not None]
+    if not candidates:
+        return None
+    return min(candidates, key=lambda s: s["seconds_at_target"])["name"]
+
+
+def _plot_w4(series: Sequence[dict], path: Path) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=(8, 5.5))
+    FigureCanvasAgg(figure)
+    axes = figure.add_subplot()
+    for entry in series:
+        points = sorted(entry["points"], key=lambda p: p["seconds"])
+        if not points:
+            continue
+        floor = 1e-17  # exact-to-round-off points still appear on a log axis
+        axes.loglog(
+            [p["seconds"] for p in points],
+            [max(p["error"], floor) for p in points],
+            marker="o" if entry["role"] == "jaxquat" else "s",
+            linestyle="-" if entry["role"] == "jaxquat" else "--",
+            markersize=3.5,
+            label=entry["name"],
+        )
+    axes.axhline(W4_TARGET_ERROR, color="grey", linewidth=0.8, linestyle=":")
+    axes.set_xlabel("wall time per solve (s)")
+    axes.set_ylabel("final orientation error (rad)")
+    axes.set_title("W4: coning, work–precision (float64, one body)")
+    axes.grid(True, which="major", linewidth=0.3)
+    axes.legend(fontsize=7, loc="best")
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+
+
+# ----------------------------------------------------------------------------------------------------
+# W5: gradients
+
+
+def _w5_forwards(problem: Problem, sampled: bool) -> dict[str, Callable]:
+    """Final orientations as functions of (q0, ω) for the differentiable contenders."""
+    import jax
+    import jax.numpy as jnp
+    from jax import lax
+
+    dt, T = problem.dt, problem.num_steps
+    functions: dict[str, Callable] = {}
+    try:
+        integrate, make_sampled = _load_integrate()
+
+        def jaxquat_final(q0, omega):
+            source = make_sampled(omega, dt) if sampled else omega
+            return integrate(q0, source, dt, T, save="final")
+
+        functions["jaxquat"] = jaxquat_final
+    except ImportError:
+        pass
+
+    def scan_final(advance):
+        def final(q0, omega):
+            if sampled:
+                return lax.scan(lambda q, w: (advance(q, w), None), q0, omega)[0]
+            return lax.scan(lambda q, _: (advance(q, omega), None), q0, None, length=T)[0]
+
+        return final
+
+    functions["JAX loop"] = scan_final(lambda q, w: _q_mul(_q_exp(w * dt, jnp), q, jnp))
+    if _missing(("jaxlie",)) is None:
+        import jaxlie
+
+        functions["jaxlie"] = scan_final(
+            jax.vmap(lambda q, w: (jaxlie.SO3.exp(w * dt) @ jaxlie.SO3(q)).wxyz)
+        )
+    return functions
+
+
+def run_w5_row(problem: Problem, sampled: bool, preset: Preset, log: Callable[[str], None]) -> dict:
+    """Forward loss and `jax.grad` w.r.t. all ω for each differentiable contender; ratio grad/forward."""
+    import jax
+    import jax.numpy as jnp
+
+    q0 = jnp.asarray(problem.q0)
+    omega = problem.omegas if sampled else jnp.asarray(problem.omega)
+    rng = np.random.default_rng(7)
+    target = rng.normal(size=problem.q0.shape)
+    target = jnp.asarray(target / np.linalg.norm(target, axis=-1, keepdims=True), dtype=q0.dtype)
+    record: dict[str, Any] = {
+        "variant": "sampled ω (T, N, 3)" if sampled else "constant ω (N, 3)",
+        "dtype": problem.dtype,
+        "num_bodies": problem.num_bodies,
+        "num_steps": problem.num_steps,
+        "contenders": {},
+    }
+    # Reference gradient: the independent hand-written loop in float64 (itself checked against the
+    # closed form's gradient for constant ω in tests/test_bench.py).
+    reference_forward = _w5_forwards(problem, sampled)["JAX loop"]
+    q0_64 = q0.astype(jnp.float64)
+    omega_64 = omega.astype(jnp.float64)
+    target_64 = target.astype(jnp.float64)
+    reference = jax.jit(jax.grad(lambda w: _loss(reference_forward(q0_64, w), target_64, jnp)))(
+        omega_64
+    )
+    reference = np.asarray(reference)
+    reference_norm = float(np.linalg.norm(reference))
+    del omega_64
+
+    for name, final in _w5_forwards(problem, sampled).items():
+        entry: dict[str, Any] = {"role": "jaxquat" if name == "jaxquat" else "peer"}
+        record["contenders"][name] = entry
+        try:
+            forward = _compiled(lambda w, final=final: _loss(final(q0, w), target, jnp), omega)
+            gradient = _compiled(
+                lambda w, final=final: jax.grad(lambda v: _loss(final(q0, v), target, jnp))(w),
+                omega,
+            )
+            g = np.asarray(_block(gradient.run()))
+            error = float(np.linalg.norm(g.astype(np.float64) - reference)) / max(
+                reference_norm, 1e-300
+            )
+            tolerance = 1e-6 if problem.dtype == "float64" else 2e-2
+            entry.update(
+                compile_seconds=(forward.compile_seconds or 0.0)
+                + (gradient.compile_seconds or 0.0),
+                gradient_error=error,
+                correct=bool(error <= tolerance),
+            )
+            del g
+            if not entry["correct"]:
+                log(f"  {name}: WRONG gradient (relative error {error:.1e}); not timed")
+                continue
+            entry["forward_seconds"] = _autorange(
+                forward.run, preset.repeats, preset.sample_seconds
+            )
+            entry["gradient_seconds"] = _autorange(
+                gradient.run, preset.repeats, preset.sample_seconds
+            )
+            entry["ratio"] = entry["gradient_seconds"] / entry["forward_seconds"]
+        except Exception as e:
+            entry["failed"] = f"{type(e).__name__}: {e}"
+            log(f"  {name}: FAILED, {entry['failed']}")
+    peers = [
+        e for e in record["contenders"].values() if e["role"] == "peer" and "gradient_seconds" in e
+    ]
+    if peers:
+        best = min(e["gradient_seconds"] for e in peers)
+        for entry in record["contenders"].values():
+            if "gradient_seconds" in entry:
+                entry["gradient_vs_best_peer"] = best / entry["gradient_seconds"]
+    return record
+
+
+# ----------------------------------------------------------------------------------------------------
+# Machine, report
+
+
+def describe_machine() -> dict:
+    """CPU, cores, memory, load and library versions, for the record."""
+    import importlib.metadata
+
+    model = platform.processor() or "unknown"
+    flags = ""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name") and model in ("unknown", "x86_64", ""):
+                    model = line.split(":", 1)[1].strip()
+                elif line.startswith("model name"):
+                    model = line.split(":", 1)[1].strip()
+                if line.startswith("flags") and not flags:
+                    flags = line
+    except OSError:
+        pass
+    memory = None
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemTotal"):
+                    memory = f"{int(line.split()[1]) / 2**20:.0f} GiB"
+    except OSError:
+        pass
+    versions = {}
+    for package in (
+        "jax",
+        "jaxlib",
+        "numpy",
+        "scipy",
+        "numpy-quaternion",
+        "jaxlie",
+        "diffrax",
+        "jaxquat",
+    ):
+        try:
+            versions[package] = importlib.metadata.version(package)
+        except importlib.metadata.PackageNotFoundError:
+            versions[package] = None
+    vector = [f for f in ("avx512f", "avx2") if f" {f} " in flags]
+    try:
+        load = os.getloadavg()
+    except OSError:
+        load = None
+    return {
+        "cpu": model,
+        "cores": os.cpu_count(),
+        "vector_extensions": vector,
+        "memory": memory,
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "versions": versions,
+        "load_average_at_start": load,
+        "date_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+    }
+
+
+def _rate(x: float) -> str:
+    for scale, suffix in ((1e9, " G"), (1e6, " M"), (1e3, " k")):
+        if x >= scale:
+            return f"{x / scale:.3g}{suffix}"
+    return f"{x:.3g}"
+
+
+def _seconds(x: float | None) -> str:
+    if x is None:
+        return "—"
+    if x >= 1:
+        return f"{x:.2f} s"
+    if x >= 1e-3:
+        return f"{x * 1e3:.3g} ms"
+    return f"{x * 1e6:.3g} µs"
+
+
+def _cell(entry: dict | None, record: dict) -> str:
+    if entry is None:
+        return "—"
+    if "skipped" in entry:
+        return "not installed" if "installed" in entry["skipped"] else "n/a"
+    if "failed" in entry:
+        return "failed"
+    if not entry.get("correct", False):
+        return "WRONG"
+    text = _rate(entry["rate"])
+    if entry["steps_timed"] != record["num_steps"]:
+        text += "†"
+    if "ratio_to_best_peer" in entry:
+        text += f" ({entry['ratio_to_best_peer']:.2f}×)"
+    return text
+
+
+def render_markdown(report: dict) -> str:
+    machine = report["machine"]
+    versions = ", ".join(f"{k} {v}" for k, v in machine["versions"].items() if v)
+    lines = [
+        f"# jaxquat benchmarks — preset `{report['preset']}`",
+        "",
+        f"Machine: {machine['cpu']}, {machine['cores']} cores"
+        + (f" ({', '.join(machine['vector_extensions'])})" if machine["vector_extensions"] else "")
+        + f", {machine['memory']} RAM; {machine['platform']}; Python {machine['python']}; {versions}.",
+        f"Run {machine['date_utc']}, {report['elapsed_seconds']:.0f} s; load average at start "
+        f"{_load(machine['load_average_at_start'])}, at end {_load(report.get('load_average_at_end'))}.",
+        "",
+    ]
+    rows = report["rows"]
+    if rows:
+        names: list[str] = []
+        for row in rows:
+            for name in row["contenders"]:
+                if name not in names:
+                    names.append(name)
+        lines += [
+            "## W1–W3: body-steps per second (ratio to the best peer of the row)",
+            "",
+            f"T = {rows[0]['num_steps']} steps of Δt = {DT} s; medians of {report['config']['repeats']}"
+            " interleaved runs, compiled ahead of time.",
+            "",
+            "| workload | dtype | N | "
+            + " | ".join(names)
+            + " | jaxquat ÷ best peer | best peer |",
+            "|---|---|---:|" + "---:|" * len(names) + "---:|---|",
+        ]
+        for row in rows:
+            jaxquat = row["contenders"].get("jaxquat", {})
+            ratio = jaxquat.get("ratio_to_best_peer")
+            lines.append(
+                f"| {row['workload']} | {row['dtype']} | {row['num_bodies']:,} | "
+                + " | ".join(_cell(row["contenders"].get(n), row) for n in names)
+                + f" | {f'**{ratio:.2f}×**' if ratio else '—'} | {row.get('best_peer') or '—'} |"
+            )
+        lines += [
+            "",
+            "† timed on fewer steps to stay within the per-call budget (cost per step is constant).",
+            "",
+            "Compile time (s) of the JAX contenders, per row:",
+            "",
+            "| workload | dtype | N | " + " | ".join(names) + " |",
+            "|---|---|---:|" + "---:|" * len(names),
+        ]
+        for row in rows:
+            cells = []
+            for n in names:
+                entry = row["contenders"].get(n)
+                seconds = entry.get("compile_seconds") if entry else None
+                cells.append(f"{seconds:.2f}" if seconds is not None else "—")
+            lines.append(
+                f"| {row['workload']} | {row['dtype']} | {row['num_bodies']:,} | "
+                + " | ".join(cells)
+                + " |"
+            )
+        lines.append("")
+        notes = {}
+        for row in rows:
+            for name, entry in row["contenders"].items():
+                if entry.get("note"):
+                    notes[name] = entry["note"]
+        if notes:
+            lines += ["Contenders:", ""] + [f"- **{n}**: {t}" for n, t in notes.items()] + [""]
+    w4 = report.get("w4")
+    if w4:
+        lines += [
+            f"## W4: coning work–precision (float64, one body, t = 0 … {w4['t_end']} s)",
+            "",
+            f"Time to reach a final error of {w4['target_error']:.0e} rad (log–log interpolation on "
+            "each method's Pareto front)" + (f"; plot: `{w4['png']}`." if w4.get("png") else "."),
+            "",
+            "| method | role | time at target | best error reached | points |",
+            "|---|---|---:|---:|---:|",
+        ]
+        for entry in sorted(
+            w4["series"],
+            key=lambda s: (s["seconds_at_target"] is None, s["seconds_at_target"] or 0),
+        ):
+            best_error = min((p["error"] for p in entry["points"]), default=None)
+            at = entry["seconds_at_target"]
+            text = (
+                "not reached"
+                if at is None
+                else ("≤ " if entry["at_target"] == "at most" else "") + _seconds(at)
+            )
+            lines.append(
+                f"| {entry['name']} | {entry['role']} | {text} | "
+                f"{f'{best_error:.1e}' if best_error is not None else '—'} | {len(entry['points'])} |"
+            )
+        if w4.get("best_jaxquat"):
+            speedups = ", ".join(f"{n} {s:.1f}×" for n, s in w4["speedups"].items())
+            lines += [
+                "",
+                f"Best jaxquat method: {w4['best_jaxquat']}; its speed-up over {speedups}.",
+            ]
+        lines.append("")
+    w5 = report.get("w5", [])
+    if w5:
+        lines += [
+            "## W5: `jax.grad` of a final-orientation loss w.r.t. all ω",
+            "",
+            "| ω | dtype | N | contender | forward | gradient | gradient ÷ forward | gradient speed vs best peer |",
+            "|---|---|---:|---|---:|---:|---:|---:|",
+        ]
+        for row in w5:
+            for name, entry in row["contenders"].items():
+                if "gradient_seconds" in entry:
+                    cells = (
+                        f"{_seconds(entry['forward_seconds'])} | {_seconds(entry['gradient_seconds'])} | "
+                        f"{entry['ratio']:.2f} | {entry.get('gradient_vs_best_peer', float('nan')):.2f}×"
+                    )
+                else:
+                    cells = "failed | | | " if "failed" in entry else "WRONG | | | "
+                lines.append(
+                    f"| {row['variant']} | {row['dtype']} | {row['num_bodies']:,} | {name} | {cells} |"
+                )
+        lines.append("")
+    if report.get("notes"):
+        lines += ["## Notes", ""] + [f"- {n}" for n in report["notes"]] + [""]
+    return "\n".join(lines)
+
+
+def _load(load) -> str:
+    return "?" if not load else " / ".join(f"{x:.2f}" for x in load)
+
+
+def _json_default(x):
+    if isinstance(x, (np.floating, np.integer)):
+        return x.item()
+    return str(x)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Entry point
+
+
+def _parse(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="jaxquat bench",
+        description="Benchmark jaxquat's integrators against SciPy, numpy-quaternion, jaxlie and plain JAX.",
+    )
+    parser.add_argument("--preset", choices=sorted(PRESETS), default="quick", help="default: quick")
+    parser.add_argument(
+        "--output",
+        type=Path,
+        default=Path("benchmarks/results"),
+        help="directory for results.md, "
+        "results.json and w4_work_precision.png (default: benchmarks/results)",
+    )
+    parser.add_argument("--workloads", help="comma-separated subset of W1,W2,W3,W4,W5")
+    parser.add_argument("--sizes", help="comma-separated numbers of bodies (W1–W3, W5)")
+    parser.add_argument("--dtypes", help="comma-separated: float64,float32")
+    parser.add_argument("--steps", type=int, help="number of steps T")
+    parser.add_argument("--repeats", type=int, help="timing rounds per row")
+    parser.add_argument("--quiet", action="store_true", help="print only the final table")
+    return parser.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the suite; write results.md, results.json and the W4 PNG into `--output`.
+
+    Returns 0 on success, 1 if a jaxquat contender gave a wrong answer, 2 on bad arguments.
+    """
+    try:
+        args = _parse(argv)
+    except SystemExit as e:
+        return int(e.code or 0) if e.code in (0, None) else 2
+    preset = PRESETS[args.preset]
+    try:
+        changes: dict[str, Any] = {}
+        if args.workloads:
+            workloads = tuple(w.strip().upper() for w in args.workloads.split(","))
+            unknown = [w for w in workloads if w not in ("W1", "W2", "W3", "W4", "W5")]
+            if unknown:
+                raise ValueError(f"unknown workload(s) {', '.join(unknown)}; expected W1..W5")
+            changes["workloads"] = workloads
+        if args.sizes:
+            changes["sizes"] = tuple(int(n) for n in args.sizes.split(","))
+            changes["w5_sizes"] = changes["sizes"]
+        if args.dtypes:
+            dtypes = tuple(d.strip() for d in args.dtypes.split(","))
+            if any(d not in ("float64", "float32") for d in dtypes):
+                raise ValueError(f"--dtypes must be float64 and/or float32; got {args.dtypes}")
+            changes["dtypes"] = dtypes
+        if args.steps is not None:
+            changes["num_steps"] = args.steps
+        if args.repeats is not None:
+            changes["repeats"] = args.repeats
+        if any(n < 1 for n in changes.get("sizes", ())) or changes.get("num_steps", 1) < 1:
+            raise ValueError("--sizes and --steps must be positive")
+    except ValueError as e:
+        print(f"jaxquat bench: error: {e}", file=sys.stderr)
+        return 2
+    preset = dataclasses.replace(preset, **changes)
+
+    import jax
+
+    # float64 rows need x64; float32 rows cast explicitly, so turning it on changes nothing for them.
+    jax.config.update("jax_enable_x64", True)
+
+    def log(message: str) -> None:
+        if not args.quiet:
+            print(message, flush=True)
+
+    output: Path = args.output
+    output.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
+    report: dict[str, Any] = {
+        "preset": args.preset,
+        "config": dataclasses.asdict(preset),
+        "machine": describe_machine(),
+        "rows": [],
+        "w5": [],
+        "notes": [],
+    }
+    for module, package in (
+        ("scipy", "scipy"),
+        ("quaternion", "numpy-quaternion"),
+        ("jaxlie", "jaxlie"),
+    ):
+        if _missing((module,)):
+            report["notes"].append(f"{package} is not installed: its columns are skipped.")
+    try:
+        _load_integrate()
+    except ImportError as e:
+        report["notes"].append(
+            f"jaxquat's integrators are not available ({e}): jaxquat rows skipped."
+        )
+    log(
+        f"jaxquat bench, preset {args.preset}: {report['machine']['cpu']}, {report['machine']['cores']} cores"
+    )
+
+    for workload in ("W1", "W2", "W3"):
+        if workload not in preset.workloads:
+            continue
+        for dtype in preset.dtypes:
+            for size in preset.sizes:
+                log(f"{workload} {dtype} N={size:,} T={preset.num_steps}")
+                problem = make_problem(workload, dtype, size, preset.num_steps)
+                row = run_row(problem, preset, log)
+                del problem
+                report["rows"].append(row)
+                for name, entry in row["contenders"].items():
+                    if "rate" in entry:
+                        log(f"  {name:40s} {_cell(entry, row)}")
+    if "W4" in preset.workloads:
+        log("W4 coning work-precision")
+        report["w4"] = run_w4(preset, output, log)
+    if "W5" in preset.workloads:
+        for dtype in preset.w5_dtypes or preset.dtypes:
+            for size in preset.w5_sizes:
+                for sampled in [v == "sampled" for v in preset.w5_variants]:
+                    log(f"W5 {dtype} N={size:,} {'sampled' if sampled else 'constant'} ω")
+                    problem = make_problem("W3" if sampled else "W1", dtype, size, preset.num_steps)
+                    row = run_w5_row(problem, sampled, preset, log)
+                    del problem
+                    report["w5"].append(row)
+                    for name, entry in row["contenders"].items():
+                        if "ratio" in entry:
+                            log(f"  {name:12s} grad/forward {entry['ratio']:.2f}")
+
+    report["elapsed_seconds"] = time.perf_counter() - started
+    try:
+        report["load_average_at_end"] = os.getloadavg()
+    except OSError:
+        report["load_average_at_end"] = None
+    markdown = render_markdown(report)
+    (output / "results.md").write_text(markdown + "\n", encoding="utf-8")
+    (output / "results.json").write_text(
+        json.dumps(report, indent=1, default=_json_default) + "\n", encoding="utf-8"
+    )
+    print(markdown)
+    print(f"\nwritten: {output / 'results.md'}, {output / 'results.json'}", flush=True)
+
+    wrong = [
+        f"{row['workload']} {row['dtype']} N={row['num_bodies']}"
+        for row in report["rows"]
+        if row["contenders"].get("jaxquat", {}).get("correct") is False
+    ]
+    wrong += [
+        f"W5 {row['variant']} {row['dtype']} N={row['num_bodies']}"
+        for row in report["w5"]
+        if row["contenders"].get("jaxquat", {}).get("correct") is False
+    ]
+    if wrong:
+        print(f"jaxquat bench: jaxquat gave wrong answers in: {'; '.join(wrong)}", file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,98 @@
+"""Smoke test of the benchmark suite: the micro preset runs, writes its table, JSON and plot, and every
+contender's answer agrees with the closed form. Speed is never asserted here (STYLE.md rule 18)."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxquat import _bench
+
+
+@pytest.fixture(scope="module")
+def micro_report(tmp_path_factory):
+    output = tmp_path_factory.mktemp("bench")
+    assert _bench.main(["--preset", "micro", "--output", str(output), "--quiet"]) == 0
+    return output, json.loads((output / "results.json").read_text())
+
+
+def test_micro_preset_writes_outputs(micro_report):
+    output, report = micro_report
+    markdown = (output / "results.md").read_text()
+    assert "| W1 | float64 | 3 |" in markdown and "jaxquat ÷ best peer" in markdown
+    assert (output / "w4_work_precision.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert report["machine"]["cores"] >= 1
+    workloads = {(row["workload"], row["dtype"]) for row in report["rows"]}
+    assert workloads == {(w, d) for w in ("W1", "W2", "W3") for d in ("float64", "float32")}
+
+
+def test_every_contender_agrees_with_the_closed_form(micro_report):
+    _, report = micro_report
+    for row in report["rows"]:
+        tolerance = _bench.ERROR_TOLERANCE[row["dtype"]]
+        assert row["contenders"]["jaxquat"]["correct"], row["contenders"]["jaxquat"]
+        for name, entry in row["contenders"].items():
+            if "skipped" in entry:  # a peer that is not installed
+                continue
+            where = f"{row['workload']} {row['dtype']} {name}"
+            assert "failed" not in entry, f"{where}: {entry['failed']}"
+            assert entry["correct"] and entry["error"] <= tolerance, where
+            assert entry["rate"] > 0, where
+    for row in report["w5"]:
+        for name, entry in row["contenders"].items():
+            assert entry.get("correct"), f"W5 {row['variant']} {name}: {entry}"
+    series = {s["name"]: s for s in report["w4"]["series"]}
+    # Fourth-order methods at 256 steps and the adaptive peers at tolerance 1e-9 are all accurate.
+    for name in ("jaxquat integrate magnus4", "diffrax Tsit5 (stock)"):
+        assert series[name]["points"][0]["error"] < 1e-5, name
+    if "numpy-quaternion integrate_angular_velocity" in series:
+        assert series["numpy-quaternion integrate_angular_velocity"]["points"][0]["error"] < 1e-6
+    assert series["jaxquat integrate euler"]["points"][0]["error"] > 1e-4  # first order is worse
+
+
+def test_sampled_rates_reproduce_the_closed_form():
+    # Stepping exactly through the W3 samples (independent numpy code) lands on exp(aT)exp(bT)q0.
+    problem = _bench.make_problem("W3", "float64", 5, 50)
+    q = problem.q0
+    for omega in np.asarray(problem.omegas):
+        q = _bench._q_mul(_bench._q_exp(omega * problem.dt, np), q, np)
+    assert np.max(_bench.angle_error(q, problem.expected(50))) < 1e-12
+    assert np.max(_bench.angle_error(problem.expected(0), problem.q0)) < 1e-15
+
+
+def test_w5_reference_gradient_matches_the_closed_form():
+    # The hand-written loop (the reference gradient of W5) against the gradient of the closed form.
+    problem = _bench.make_problem("W1", "float64", 4, 30)
+    forward = _bench._w5_forwards(problem, sampled=False)["JAX loop"]
+    q0 = jnp.asarray(problem.q0)
+    target = jnp.asarray(_bench.make_problem("W1", "float64", 4, 7).q0)
+    t = problem.num_steps * problem.dt
+
+    def closed_form(omega):
+        return _bench._q_mul(_bench._q_exp(omega * t, jnp), q0, jnp)
+
+    loss = _bench._loss
+    expected = jax.grad(lambda w: loss(closed_form(w), target, jnp))(jnp.asarray(problem.omega))
+    actual = jax.grad(lambda w: loss(forward(q0, w), target, jnp))(jnp.asarray(problem.omega))
+    np.testing.assert_allclose(actual, expected, rtol=1e-9, atol=1e-12)
+
+
+def test_time_at_error_interpolates_on_the_pareto_front():
+    points = [
+        {"seconds": 1.0, "error": 1e-6},
+        {"seconds": 2.0, "error": 1e-7},  # dominated by nothing; brackets nothing
+        {"seconds": 3.0, "error": 1e-5},  # dominated: slower and less accurate
+        {"seconds": 4.0, "error": 1e-9},
+    ]
+    seconds, how = _bench.time_at_error(points, 1e-8)
+    assert how == "interpolated" and seconds == pytest.approx(2.0 * 2.0**0.5)
+    assert _bench.time_at_error(points, 1e-12) == (None, "not reached")
+    assert _bench.time_at_error(points, 1e-5) == (1.0, "at most")
+
+
+def test_bad_arguments_exit_with_an_error_code(tmp_path, capsys):
+    assert _bench.main(["--preset", "nope", "--output", str(tmp_path)]) == 2
+    assert _bench.main(["--workloads", "W9", "--output", str(tmp_path)]) == 2
+    assert "W9" in capsys.readouterr().err
