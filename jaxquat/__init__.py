@@ -82,6 +82,15 @@ from ._ensemble import (
     simulate_ensemble as simulate_ensemble,
 )
 
+# Fitting
+from ._fitting import (
+    AngularVelocityCurve as AngularVelocityCurve,
+    AngularVelocityFit as AngularVelocityFit,
+    RigidBodyFit as RigidBodyFit,
+    fit_angular_velocity as fit_angular_velocity,
+    fit_rigid_body as fit_rigid_body,
+)
+
 try:
     __version__ = importlib.metadata.version("jaxquat")
 except importlib.metadata.PackageNotFoundError:  # running from a source tree without install
