@@ -61,6 +61,19 @@ from ._kinematics import (
 # Fixed-step integration
 from ._integrate import integrate as integrate, sampled as sampled
 
+# diffrax vector fields and solvers
+from ._solvers import (
+    CF4 as CF4,
+    ExpMidpoint as ExpMidpoint,
+    LieCubicInterpolation as LieCubicInterpolation,
+    LieEuler as LieEuler,
+    Magnus4 as Magnus4,
+    NormalizedEuler as NormalizedEuler,
+    RKMK45 as RKMK45,
+    corrected_vector_field as corrected_vector_field,
+    kinematic_vector_field as kinematic_vector_field,
+)
+
 # Dynamics
 from ._dynamics import (
     angular_momentum as angular_momentum,
