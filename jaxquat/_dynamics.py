@@ -90,7 +90,7 @@ def _point_inertia(masses: Array, relative: Array) -> Array:
     """Σᵢ mᵢ (|rᵢ|² E − rᵢ rᵢᵀ) for positions `relative` to the reference point."""
     eye = jnp.eye(3, dtype=relative.dtype)
     outer = relative[..., :, None] * relative[..., None, :]
-    per_point = sum_squares(relative)[..., None, None] * eye - outer
+    per_point = sum_squares(relative)[..., None, None] * jnp.broadcast_to(eye, outer.shape) - outer
     return jnp.sum(masses[..., None, None] * per_point, axis=-3)
 
 
