@@ -5,16 +5,15 @@ The torque-free asymmetric top is compared with an independent reference written
 satisfy Euler's equations and the kinematics by finite differences before it is used.
 """
 
-import functools
-
+import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import assert_quat_close, central_jacobian, quat_distance, random_unit
 from scipy import special
 
 import jaxquat as jq
-from helpers import assert_quat_close, central_jacobian, quat_distance, random_unit
 
 # --------------------------------------------------------------------------------------------------
 # Independent NumPy reference: quaternions and the torque-free asymmetric top
@@ -113,7 +112,7 @@ def torque_free_reference(moments, omega0, q0, times):
     nodes, weights = np.polynomial.legendre.leggauss(20)
     edges = np.concatenate([[0.0], times])
     increments = []
-    for a, b in zip(edges[:-1], edges[1:]):
+    for a, b in zip(edges[:-1], edges[1:], strict=True):
         cuts = np.linspace(a, b, int(np.ceil(abs(b - a) / 0.05)) + 1)
         mid, half = 0.5 * (cuts[1:] + cuts[:-1]), 0.5 * (cuts[1:] - cuts[:-1])
         increments.append(
@@ -442,7 +441,7 @@ def test_rotate_point_sets(getkey):
     expected = np.stack(
         [
             [np_rotate(p, qb) for p in pts]
-            for pts, qb in zip(np.asarray(batch_points), np.asarray(qs))
+            for pts, qb in zip(np.asarray(batch_points), np.asarray(qs), strict=True)
         ]
     )
     np.testing.assert_allclose(jq.rotate(batch_points, qs[:, None]), expected, atol=1e-14)
@@ -451,7 +450,9 @@ def test_rotate_point_sets(getkey):
     expected_about = np.stack(
         [
             [np_rotate(p - c, qb) + c for p in pts]
-            for pts, qb, c in zip(np.asarray(batch_points), np.asarray(qs), np.asarray(centres))
+            for pts, qb, c in zip(
+                np.asarray(batch_points), np.asarray(qs), np.asarray(centres), strict=True
+            )
         ]
     )
     np.testing.assert_allclose(about, expected_about, atol=1e-14)
@@ -463,7 +464,9 @@ def test_inertia_and_angular_momentum_of_point_masses(getkey):
     c = np.asarray(jq.center_of_mass(masses, positions))
     m = np.asarray(masses)
     r = np.asarray(positions) - c
-    expected = sum(mi * (ri @ ri * np.eye(3) - np.outer(ri, ri)) for mi, ri in zip(m, r))
+    expected = sum(
+        mi * (ri @ ri * np.eye(3) - np.outer(ri, ri)) for mi, ri in zip(m, r, strict=True)
+    )
     inertia = jq.inertia_tensor(masses, positions)
     np.testing.assert_allclose(inertia, expected, atol=1e-13)
     # Parallel-axis theorem for another reference point.
@@ -776,7 +779,7 @@ def _planar_positions(t):
     a, b, _, _ = _arm_angles(t, jnp)
     arms = [
         hinge + length * jnp.stack([jnp.cos(g), jnp.sin(g)])
-        for hinge, length, g in zip(HINGES, ARM_LENGTHS, (a, b))
+        for hinge, length, g in zip(HINGES, ARM_LENGTHS, (a, b), strict=True)
     ]
     xy = jnp.concatenate([jnp.asarray(HINGES), jnp.stack(arms)], axis=0)
     return jnp.concatenate([xy, jnp.zeros((4, 1))], axis=1)
@@ -791,7 +794,7 @@ def test_planar_zero_momentum_cycle_matches_quadrature():
         zero = np.zeros_like(t)
         points = [np.stack([h[0] + zero, h[1] + zero]) for h in HINGES]
         velocities = [np.stack([zero, zero]) for _ in HINGES]
-        for hinge, length, g, dg in zip(HINGES, ARM_LENGTHS, (a, b), (da, db)):
+        for hinge, length, g, dg in zip(HINGES, ARM_LENGTHS, (a, b), (da, db), strict=True):
             points.append(np.stack([hinge[0] + length * np.cos(g), hinge[1] + length * np.sin(g)]))
             velocities.append(length * dg * np.stack([-np.sin(g), np.cos(g)]))
         points, velocities = np.stack(points), np.stack(velocities)
@@ -831,3 +834,40 @@ def test_three_dimensional_zero_momentum_cycle_converges():
     # Fourth order: each halving of the step divides the error by ~16.
     assert errors[1] < errors[0] / 10 and errors[2] < errors[1] / 10
     assert errors[2] < 1e-6
+
+
+# --------------------------------------------------------------------------------------------------
+# The same system as a diffrax vector field
+
+
+@pytest.mark.parametrize("frame", ["body", "world"])
+def test_rigid_body_vector_field_with_lie_group_solvers(frame):
+    omega0 = OMEGA0S[0]
+    q_ref, w_ref, _ = torque_free_reference(MOMENTS, omega0, Q0, [3.0])
+    field = jq.rigid_body_vector_field(jnp.asarray(MOMENTS), frame=frame)
+    w0 = omega0 if frame == "body" else np.asarray(jq.rotate(omega0, Q0))
+    y0 = (jnp.asarray(Q0), jnp.asarray(w0))
+    # Its right-hand side is the kinematics plus Euler's equations.
+    q_dot, w_dot = field(0.0, y0, None)
+    if frame == "body":
+        np.testing.assert_allclose(q_dot, 0.5 * np_multiply(Q0, np.r_[0.0, omega0]), atol=1e-15)
+        np.testing.assert_allclose(w_dot, np_euler_rhs(MOMENTS, omega0), atol=1e-15)
+    for solver, controller in (
+        (jq.CF4(), diffrax.ConstantStepSize()),
+        (jq.RKMK45(), diffrax.PIDController(rtol=1e-11, atol=1e-11)),
+    ):
+        solution = diffrax.diffeqsolve(
+            diffrax.ODETerm(field),
+            solver,
+            0.0,
+            3.0,
+            1e-2,
+            y0,
+            stepsize_controller=controller,
+            max_steps=10_000,
+        )
+        q_end, w_end = solution.ys[0][-1], solution.ys[1][-1]
+        if frame == "world":
+            w_end = jq.rotate(w_end, jq.conjugate(q_end))
+        assert quat_distance(q_end, q_ref[0]) < 1e-8
+        np.testing.assert_allclose(w_end, w_ref[0], atol=1e-8)
