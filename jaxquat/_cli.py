@@ -1,0 +1,740 @@
+"""The command line: `python -m jaxquat {demo,simulate,fit,bench}` (also the `jaxquat` console script).
+
+- `demo`: a 10⁵-body rigid-body ensemble (uncertainty propagation through the tennis-racket
+  instability), a fit of ω to noisy attitude observations, a summary table and a PNG figure.
+- `simulate`: an ensemble from options or a TOML file; writes an ensemble directory and a summary.
+- `fit`: fits ω to a CSV of `t,w,x,y,z` (header optional); `--json` for machine-readable output.
+- `bench`: the benchmark suite with its quick preset.
+
+Every bad argument or file gives exactly one line on stderr (naming the file and line where it
+applies) and exit status 2; an unexpected failure gives one line and exit status 1. Never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+import warnings
+from collections.abc import Sequence
+from typing import Any
+
+_PROG = "jaxquat"
+_DTYPES = ("float32", "float64")
+
+
+class CommandLineError(Exception):
+    """A problem with the user's arguments or files: reported in one line, exit status 2."""
+
+    def __init__(self, message: str, prog: str = _PROG):
+        super().__init__(message)
+        self.prog = prog
+
+
+class _Parser(argparse.ArgumentParser):
+    """An `ArgumentParser` whose errors become one-line `CommandLineError`s instead of usage + exit."""
+
+    def error(self, message: str):  # noqa: D102 (argparse's signature)
+        raise CommandLineError(message, prog=self.prog)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Value parsers (used for options and for TOML values)
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except (TypeError, ValueError):
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    value = _finite_float(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {value:g}")
+    return value
+
+
+def _nonnegative_float(text: str) -> float:
+    value = _finite_float(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value:g}")
+    return value
+
+
+def _finite_float(text: str) -> float:
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text!r}")
+    return value
+
+
+def _vector3(text: str) -> list[float]:
+    parts = text.split(",") if isinstance(text, str) else text
+    if len(parts) != 3:
+        raise argparse.ArgumentTypeError(f"must be three comma-separated numbers, got {text!r}")
+    return [_finite_float(p) for p in parts]
+
+
+def _inertia(text: str) -> list[float]:
+    moments = _vector3(text)
+    if any(m <= 0 for m in moments):
+        raise argparse.ArgumentTypeError(f"principal moments must be positive, got {text!r}")
+    return moments
+
+
+# ----------------------------------------------------------------------------------------------------
+# Reading files
+
+
+def _read_text(path: str, what: str) -> str:
+    if not os.path.exists(path):
+        raise CommandLineError(f"{path}: no such file ({what})")
+    if os.path.isdir(path):
+        raise CommandLineError(f"{path}: is a directory, expected a {what}")
+    try:
+        with open(path, encoding="utf-8") as f:
+            return f.read()
+    except UnicodeDecodeError:
+        raise CommandLineError(f"{path}: not a UTF-8 text file ({what})") from None
+    except OSError as e:
+        raise CommandLineError(f"{path}: cannot read ({e.strerror})") from None
+
+
+_CSV_COLUMNS = ("t", "w", "x", "y", "z")
+
+
+def read_observations_csv(path: str):
+    """Read `t,w,x,y,z` rows (header optional; blank lines and `#` comments skipped).
+
+    Returns `(times (T,), quaternions (T, 4))` as float64 NumPy arrays, or raises `CommandLineError`
+    naming the file and line of the first problem.
+    """
+    import numpy as np
+
+    text = _read_text(path, "CSV of t,w,x,y,z")
+    rows: list[list[float]] = []
+    line_numbers: list[int] = []
+    seen_content = False
+    for number, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        fields = [f.strip() for f in line.split(",")]
+        if not seen_content:
+            seen_content = True
+            if not all(_is_number(f) for f in fields):
+                names = tuple(f.lower() for f in fields)
+                if names != _CSV_COLUMNS:
+                    raise CommandLineError(
+                        f"{path} line {number}: header must be t,w,x,y,z, got {line!r}"
+                    )
+                continue
+        if len(fields) != 5:
+            raise CommandLineError(
+                f"{path} line {number}: expected 5 columns (t,w,x,y,z), got {len(fields)}"
+            )
+        values = []
+        for name, field in zip(_CSV_COLUMNS, fields, strict=True):
+            if not _is_number(field):
+                raise CommandLineError(
+                    f"{path} line {number}: column {name} is not a number: {field!r}"
+                )
+            value = float(field)
+            if not math.isfinite(value):
+                raise CommandLineError(
+                    f"{path} line {number}: column {name} is not finite ({field})"
+                )
+            values.append(value)
+        if rows and values[0] <= rows[-1][0]:
+            raise CommandLineError(
+                f"{path} line {number}: times must increase, but t = {values[0]:g} follows "
+                f"t = {rows[-1][0]:g}"
+            )
+        if values[1] == values[2] == values[3] == values[4] == 0.0:
+            raise CommandLineError(f"{path} line {number}: the quaternion (w,x,y,z) is zero")
+        rows.append(values)
+        line_numbers.append(number)
+    if not rows:
+        raise CommandLineError(f"{path}: no data rows (empty file)")
+    if len(rows) < 3:
+        raise CommandLineError(f"{path}: need at least 3 observations to fit ω, got {len(rows)}")
+    data = np.asarray(rows, dtype=np.float64)
+    return data[:, 0], data[:, 1:]
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+# Options of `simulate` that a TOML file may set: name → (parser, description).
+_SIMULATE_KEYS: dict[str, Any] = {
+    "bodies": _positive_int,
+    "steps": _positive_int,
+    "dt": _positive_float,
+    "method": str,
+    "frame": str,
+    "omega_scale": _nonnegative_float,
+    "omega_mean": _vector3,
+    "inertia": _inertia,
+    "seed": int,
+    "dtype": str,
+    "save_every": _positive_int,
+    "chunk_size": _positive_int,
+    "output": str,
+    "statistics": bool,
+}
+
+
+def read_simulate_toml(path: str) -> dict[str, Any]:
+    """Read and check a `simulate` configuration; errors name the file, the line and the key."""
+    import tomllib
+
+    text = _read_text(path, "TOML configuration")
+    try:
+        table = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise CommandLineError(f"{path}: invalid TOML: {e}") from None
+    if "simulate" in table and isinstance(table["simulate"], dict) and len(table) == 1:
+        table = table["simulate"]
+
+    def where(key: str) -> str:
+        for number, line in enumerate(text.splitlines(), start=1):
+            if line.strip().split("=")[0].strip().strip('"') == key:
+                return f"{path} line {number}"
+        return path
+
+    config: dict[str, Any] = {}
+    for key, value in table.items():
+        if key not in _SIMULATE_KEYS:
+            known = ", ".join(sorted(_SIMULATE_KEYS))
+            raise CommandLineError(f"{where(key)}: unknown key {key!r} (known: {known})")
+        parse = _SIMULATE_KEYS[key]
+        if parse is bool:
+            if not isinstance(value, bool):
+                raise CommandLineError(f"{where(key)}: {key} must be true or false, got {value!r}")
+        elif parse is str:
+            if not isinstance(value, str):
+                raise CommandLineError(f"{where(key)}: {key} must be a string, got {value!r}")
+        elif parse is int:
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise CommandLineError(f"{where(key)}: {key} must be an integer, got {value!r}")
+        else:
+            if isinstance(value, bool) or not isinstance(value, (int, float, list, str)):
+                raise CommandLineError(f"{where(key)}: {key} has the wrong type: {value!r}")
+            if parse in (_positive_int,) and not isinstance(value, int):
+                raise CommandLineError(
+                    f"{where(key)}: {key} must be a positive integer, got {value!r}"
+                )
+            try:
+                value = parse(value if isinstance(value, list) else str(value))
+            except argparse.ArgumentTypeError as e:
+                raise CommandLineError(f"{where(key)}: {key} {e}") from None
+        config[key] = value
+    return config
+
+
+# ----------------------------------------------------------------------------------------------------
+# Shared set-up
+
+
+def _setup_jax(dtype: str) -> None:
+    import jax
+
+    if dtype == "float64":
+        jax.config.update("jax_enable_x64", True)
+
+
+def _random_ensemble(seed: int, bodies: int, omega_mean, omega_scale: float, dtype):
+    """Haar-random orientations and ω = mean + scale·N(0, I), made with `jax.random`."""
+    import jax
+    import jax.numpy as jnp
+
+    from ._geometry import random
+
+    key_q, key_w = jax.random.split(jax.random.key(seed))
+    q0 = random(key_q, (bodies,), dtype)
+    noise = jax.random.normal(key_w, (bodies, 3), dtype)
+    omega = jnp.asarray(omega_mean, dtype) + jnp.asarray(omega_scale, dtype) * noise
+    return q0, omega
+
+
+def _percentiles(values, qs=(5, 50, 95)):
+    import numpy as np
+
+    return [float(v) for v in np.percentile(np.asarray(values, dtype=np.float64), qs)]
+
+
+# ----------------------------------------------------------------------------------------------------
+# simulate
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    config: dict[str, Any] = {
+        "bodies": 10_000,
+        "steps": 1_000,
+        "dt": 1e-2,
+        "method": None,
+        "frame": None,
+        "omega_scale": 1.0,
+        "omega_mean": [0.0, 0.0, 0.0],
+        "inertia": None,
+        "seed": 0,
+        "dtype": "float32",
+        "save_every": None,
+        "chunk_size": None,
+        "output": "jaxquat_ensemble",
+        "statistics": True,
+    }
+    if args.config is not None:
+        config.update(read_simulate_toml(args.config))
+    for key in config:  # command-line options override the file
+        value = getattr(args, key, None)
+        if value is not None:
+            config[key] = value
+    if config["dtype"] not in _DTYPES:
+        raise CommandLineError(f"dtype must be float32 or float64, got {config['dtype']!r}")
+    _setup_jax(config["dtype"])
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from ._ensemble import simulate_ensemble
+
+    dtype = jnp.dtype(config["dtype"])
+    q0, omega = _random_ensemble(
+        config["seed"], config["bodies"], config["omega_mean"], config["omega_scale"], dtype
+    )
+    inertia = None if config["inertia"] is None else jnp.asarray(config["inertia"], dtype)
+    result = simulate_ensemble(
+        q0,
+        omega,
+        config["dt"],
+        config["steps"],
+        inertia=inertia,
+        frame=config["frame"],
+        method=config["method"],
+        save_every=config["save_every"],
+        statistics=config["statistics"],
+        chunk_size=config["chunk_size"],
+        path=config["output"],
+        progress=not args.no_progress,
+    )
+    kind = "rigid bodies" if inertia is not None else "kinematic bodies"
+    method = config["method"] or ("cf4" if inertia is not None else "euler")
+    rows = [
+        (
+            "ensemble",
+            f"{config['bodies']:,} {kind}, {config['steps']:,} steps of {config['dt']:g} s",
+        ),
+        (
+            "method / frame / dtype",
+            f"{method} / {config['frame'] or ('body' if inertia is not None else 'world')} / {dtype.name}",
+        ),
+        ("devices", f"{len(jax.devices())} ({jax.devices()[0].platform})"),
+        ("wall time", f"{result.seconds:.2f} s in {result.num_chunks} chunk(s), compile included"),
+        ("throughput", f"{result.throughput / 1e6:.1f} M body-steps/s"),
+    ]
+    p5, p50, p95 = _percentiles(np.degrees(np.asarray(result.angle_from_start)))
+    rows.append(("angle from start (5/50/95 %)", f"{p5:.2f}° / {p50:.2f}° / {p95:.2f}°"))
+    if result.total_angle is not None:
+        total = np.asarray(result.total_angle, dtype=np.float64)
+        rows.append(("total rotation (mean / max)", f"{total.mean():.3f} / {total.max():.3f} rad"))
+    saved = (
+        "final state" if not config["save_every"] else f"states every {config['save_every']} steps"
+    )
+    rows.append(("written", f"{config['output']}/ ({saved}; read with jaxquat.load_ensemble)"))
+    _print_table(rows)
+    return 0
+
+
+def _print_table(rows: Sequence[tuple[str, str]]) -> None:
+    width = max(len(k) for k, _ in rows)
+    for key, value in rows:
+        print(f"  {key:<{width}}  {value}")
+
+
+# ----------------------------------------------------------------------------------------------------
+# fit
+
+
+def _cmd_fit(args: argparse.Namespace) -> int:
+    times, quaternions = read_observations_csv(args.file)
+    _setup_jax("float64")
+    import numpy as np
+
+    from ._fitting import fit_angular_velocity
+
+    kwargs: dict[str, Any] = {"model": args.model, "frame": args.frame}
+    if args.knots is not None:
+        kwargs["knots"] = args.knots
+    norms = np.linalg.norm(quaternions, axis=-1, keepdims=True)
+    fit = fit_angular_velocity(times, quaternions / norms, **kwargs)
+    residuals = np.degrees(np.asarray(fit.residual_angles, dtype=np.float64))
+    report: dict[str, Any] = {
+        "model": args.model,
+        "frame": args.frame,
+        "observations": int(times.shape[0]),
+        "q0": np.asarray(fit.q0, dtype=np.float64).tolist(),
+        "residual_rms_deg": float(np.sqrt(np.mean(residuals**2))),
+        "residual_max_deg": float(residuals.max()),
+        "converged": bool(fit.converged),
+    }
+    if args.model == "constant":
+        omega = np.asarray(fit.omega, dtype=np.float64)
+        report["omega"] = omega.tolist()
+        report["omega_norm"] = float(np.linalg.norm(omega))
+    else:
+        report["knots"] = np.asarray(fit.omega.knots, dtype=np.float64).tolist()
+        report["omega_at_knots"] = np.asarray(fit.omega.values, dtype=np.float64).tolist()
+    if args.json:
+        print(json.dumps(report))
+        return 0
+    if args.model == "constant":
+        x, y, z = report["omega"]
+        print(
+            f"omega = [{x:.9g}, {y:.9g}, {z:.9g}] rad/s  (|omega| = {report['omega_norm']:.9g}, {args.frame} frame)"
+        )
+    else:
+        print(f"omega(t) at {len(report['knots'])} knots ({args.model}, {args.frame} frame):")
+        for t, (x, y, z) in zip(report["knots"], report["omega_at_knots"], strict=True):
+            print(f"  t = {t:<12.6g} omega = [{x:.6g}, {y:.6g}, {z:.6g}] rad/s")
+    print(
+        f"q0 = [{', '.join(f'{v:.9g}' for v in report['q0'])}]  residual rms "
+        f"{report['residual_rms_deg']:.4g}°, max {report['residual_max_deg']:.4g}°, "
+        f"{report['observations']} observations, converged: {report['converged']}"
+    )
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------------
+# bench
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    try:
+        from . import _bench
+    except ImportError:
+        raise CommandLineError(
+            "bench: the benchmark suite (jaxquat._bench) is not installed"
+        ) from None
+    return int(_bench.main(["--preset", "quick", *args.bench_args]) or 0)
+
+
+# ----------------------------------------------------------------------------------------------------
+# demo
+
+
+def _check_png_path(path: str) -> str:
+    if not path.lower().endswith(".png"):
+        raise CommandLineError(f"--output must name a .png file, got {path!r}")
+    directory = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(directory):
+        raise CommandLineError(
+            f"--output {path}: directory {os.path.dirname(path) or '.'} does not exist"
+        )
+    if os.path.isdir(path):
+        raise CommandLineError(f"--output {path}: is a directory")
+    if not os.access(directory, os.W_OK):
+        raise CommandLineError(f"--output {path}: directory is not writable")
+    return path
+
+
+# The demo's physics: a body with principal moments (1, 2, 3) spinning about its intermediate axis
+# (the tennis-racket / Dzhanibekov instability) with uncertain initial attitude and rate.
+_DEMO_INERTIA = (1.0, 2.0, 3.0)
+_DEMO_OMEGA = (0.01, 2.0, 0.01)  # body frame, rad/s
+_DEMO_SIGMA_ATTITUDE = math.radians(0.5)
+_DEMO_SIGMA_OMEGA = 0.005
+_DEMO_DT = 0.02
+# The fit: a satellite turning at a constant rate, attitude observed with 0.2° noise.
+_FIT_OMEGA = (0.3, -0.2, 0.5)
+_FIT_SIGMA = math.radians(0.2)
+_FIT_COUNT = 60
+_FIT_SPAN = 10.0
+
+
+def _demo_ensemble(bodies: int, steps: int, seed: int, progress: bool):
+    import jax
+    import jax.numpy as jnp
+
+    from ._algebra import multiply
+    from ._ensemble import _angle_between, simulate_ensemble
+    from ._rotation import from_rotvec
+
+    dtype = jnp.float32
+    key_q, key_w = jax.random.split(jax.random.key(seed))
+    # Body 0 is the nominal body; the others are perturbed (attitude and rate).
+    mask = (jnp.arange(bodies) > 0).astype(dtype)[:, None]
+    attitude = _DEMO_SIGMA_ATTITUDE * mask * jax.random.normal(key_q, (bodies, 3), dtype)
+    q0 = from_rotvec(attitude)
+    omega0 = jnp.asarray(_DEMO_OMEGA, dtype) + _DEMO_SIGMA_OMEGA * mask * jax.random.normal(
+        key_w, (bodies, 3), dtype
+    )
+    inertia = jnp.asarray(_DEMO_INERTIA, dtype)
+    save_every = max(1, steps // 40)
+    result = simulate_ensemble(
+        q0,
+        omega0,
+        _DEMO_DT,
+        steps,
+        inertia=inertia,
+        frame="body",
+        method="cf4",
+        save_every=save_every,
+        progress=progress,
+    )
+    spread = jax.jit(lambda s: _angle_between(s[:, :1], s))(result.saved)
+    energy0 = 0.5 * jnp.sum(inertia * omega0 * omega0, axis=-1)
+    energy = 0.5 * jnp.sum(inertia * result.final_omega * result.final_omega, axis=-1)
+    drift = jnp.max(jnp.abs(energy - energy0) / energy0)
+    del multiply
+    return result, spread, float(drift)
+
+
+def _demo_fit(seed: int):
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from ._algebra import multiply
+    from ._fitting import fit_angular_velocity
+    from ._rotation import from_rotvec
+
+    key_q, key_n = jax.random.split(jax.random.key(seed + 1))
+    times = jnp.linspace(0.0, _FIT_SPAN, _FIT_COUNT, dtype=jnp.float64)
+    omega = jnp.asarray(_FIT_OMEGA, jnp.float64)
+    q_start = from_rotvec(jax.random.normal(key_q, (3,), jnp.float64))
+    truth = multiply(from_rotvec(times[:, None] * omega), q_start)
+    noise = from_rotvec(_FIT_SIGMA * jax.random.normal(key_n, (_FIT_COUNT, 3), jnp.float64))
+    observed = multiply(noise, truth)
+    fit = fit_angular_velocity(times, observed)
+    return np.asarray(times), np.asarray(omega), fit
+
+
+def run_demo(*, bodies: int, steps: int, output: str, seed: int, progress: bool) -> int:
+    """The README's main job: an ensemble, a fit of ω, a summary table and a PNG figure."""
+    output = _check_png_path(output)
+    started = time.perf_counter()
+    _setup_jax("float64")  # the fit runs in float64; the ensemble is float32 by its inputs
+    import jax
+    import numpy as np
+
+    result, spread, drift = _demo_ensemble(bodies, steps, seed, progress)
+    spread_deg = np.degrees(np.asarray(spread, dtype=np.float64))
+    times = np.asarray(result.times)
+    times_fit, omega_true, fit = _demo_fit(seed)
+    omega_fit = np.asarray(fit.omega, dtype=np.float64)
+    residuals = np.degrees(np.asarray(fit.residual_angles, dtype=np.float64))
+
+    devices = jax.devices()
+    print(
+        "jaxquat demo: uncertainty propagation through the tennis-racket instability\n"
+        f"  {bodies:,} rigid bodies, inertia {_DEMO_INERTIA}, body rate {_DEMO_OMEGA} rad/s "
+        f"± {_DEMO_SIGMA_OMEGA}, attitude ± {math.degrees(_DEMO_SIGMA_ATTITUDE):g}°\n"
+        f"  method cf4, dt {_DEMO_DT} s, {steps} steps, float32, {len(devices)} {devices[0].platform} "
+        f"device(s)\n"
+    )
+    print(
+        f"  {'t [s]':>7}  {'median':>9}  {'95 %':>9}  {'max':>9}   attitude spread from the nominal body"
+    )
+    rows = np.unique(np.linspace(0, len(times) - 1, min(len(times), 9)).round().astype(int))
+    for i in rows:
+        p50, p95 = np.percentile(spread_deg[i, 1:], (50, 95)) if bodies > 1 else (0.0, 0.0)
+        print(f"  {times[i]:7.2f}  {p50:8.3f}°  {p95:8.3f}°  {spread_deg[i].max():8.3f}°")
+    print(
+        f"\n  energy drift (max relative, cf4): {drift:.1e}    "
+        f"ensemble: {result.seconds:.1f} s compile included, "
+        f"{result.throughput / 1e6:.1f} M body-steps/s"
+    )
+    error = np.linalg.norm(omega_fit - omega_true)
+    print(
+        f"\nfit of ω to {len(times_fit)} noisy attitude observations "
+        f"(σ = {math.degrees(_FIT_SIGMA):g}°, {times_fit[-1]:g} s):\n"
+        f"  true ω    [{', '.join(f'{v:+.6f}' for v in omega_true)}] rad/s\n"
+        f"  fitted ω  [{', '.join(f'{v:+.6f}' for v in omega_fit)}] rad/s\n"
+        f"  error {error:.2e} rad/s ({100 * error / np.linalg.norm(omega_true):.3f} %), residual rms "
+        f"{np.sqrt(np.mean(residuals**2)):.3f}°, converged: {bool(fit.converged)}"
+    )
+    _demo_figure(output, times, spread_deg, times_fit, residuals, bodies)
+    print(f"\nfigure written to {output}   (total {time.perf_counter() - started:.1f} s)")
+    return 0
+
+
+def _demo_figure(output, times, spread_deg, times_fit, residuals, bodies):
+    import numpy as np
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=(13, 3.8), layout="constrained")
+    FigureCanvasAgg(figure)
+    left, middle, right = figure.subplots(1, 3)
+    others = spread_deg[:, 1:] if bodies > 1 else spread_deg
+    floor = 1e-3
+    for q, style in ((50, "-"), (95, "--"), (100, ":")):
+        label = "max" if q == 100 else f"{q} %"
+        left.plot(times, np.maximum(np.percentile(others, q, axis=1), floor), style, label=label)
+    left.set(
+        yscale="log",
+        xlabel="t [s]",
+        ylabel="attitude spread [deg]",
+        title=f"{bodies:,} tumbling bodies",
+    )
+    left.legend()
+    picks = np.unique(np.linspace(len(times) // 4, len(times) - 1, 4).round().astype(int))
+    bins = np.logspace(-2, np.log10(180.0), 60)
+    for i in picks:
+        middle.hist(
+            np.maximum(others[i], 1e-2), bins=bins, histtype="step", label=f"t = {times[i]:.1f} s"
+        )
+    middle.set(
+        xscale="log", xlabel="attitude spread [deg]", ylabel="bodies", title="spread over time"
+    )
+    middle.legend()
+    right.plot(times_fit, residuals, "o", ms=3)
+    right.axhline(
+        math.degrees(_FIT_SIGMA) * math.sqrt(3), color="gray", lw=0.8, label="noise rms σ√3"
+    )
+    right.set(xlabel="t [s]", ylabel="residual angle [deg]", title="fit of ω: residuals")
+    right.legend()
+    figure.savefig(output, dpi=110)
+
+
+# ----------------------------------------------------------------------------------------------------
+# The parser and the entry point
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(
+        prog=_PROG,
+        description="jaxquat: differentiable JAX quaternions, orientation integrators and ensembles.",
+    )
+    parser.add_argument(
+        "--distributed",
+        action="store_true",
+        help="call jax.distributed.initialize() first (multi-host runs)",
+    )
+    commands = parser.add_subparsers(dest="command", metavar="{demo,simulate,fit,bench}")
+    commands.required = True
+
+    demo = commands.add_parser("demo", help="10⁵-body ensemble, a fit of ω, a table and a PNG")
+    demo.add_argument(
+        "--bodies", type=_positive_int, default=100_000, help="ensemble size (100000)"
+    )
+    demo.add_argument("--steps", type=_positive_int, default=400, help="time steps (400)")
+    demo.add_argument("--output", default="jaxquat_demo.png", help="PNG path (./jaxquat_demo.png)")
+    demo.add_argument("--seed", type=int, default=0, help="random seed (0)")
+    demo.add_argument("--no-progress", action="store_true", help="no progress bar")
+    demo.set_defaults(
+        func=lambda a: run_demo(
+            bodies=a.bodies, steps=a.steps, output=a.output, seed=a.seed, progress=not a.no_progress
+        )
+    )
+
+    simulate = commands.add_parser("simulate", help="run an ensemble; write results and a summary")
+    simulate.add_argument("--config", help="TOML file with any of the options below (underscores)")
+    simulate.add_argument("--bodies", type=_positive_int, help="number of bodies (10000)")
+    simulate.add_argument("--steps", type=_positive_int, help="number of steps (1000)")
+    simulate.add_argument("--dt", type=_positive_float, help="time step in s (0.01)")
+    simulate.add_argument("--method", help="integrator (euler, midpoint, magnus4, cf4, naive, rk4)")
+    simulate.add_argument("--frame", choices=("world", "body"), help="frame of ω")
+    simulate.add_argument(
+        "--omega-scale",
+        dest="omega_scale",
+        type=_nonnegative_float,
+        help="ω = mean + scale·N(0, I) rad/s (1.0)",
+    )
+    simulate.add_argument("--omega-mean", dest="omega_mean", type=_vector3, help="x,y,z in rad/s")
+    simulate.add_argument(
+        "--inertia",
+        type=_inertia,
+        help="principal moments a,b,c: simulate torque-free rigid bodies",
+    )
+    simulate.add_argument("--seed", type=int, help="random seed (0)")
+    simulate.add_argument("--dtype", choices=_DTYPES, help="float32 (default) or float64")
+    simulate.add_argument(
+        "--save-every",
+        dest="save_every",
+        type=_positive_int,
+        help="stream the states every K steps to the output directory",
+    )
+    simulate.add_argument(
+        "--chunk-size", dest="chunk_size", type=_positive_int, help="steps per chunk"
+    )
+    simulate.add_argument("--output", help="output directory (./jaxquat_ensemble)")
+    simulate.add_argument(
+        "--no-statistics",
+        dest="statistics",
+        action="store_false",
+        default=None,
+        help="skip the per-body total-rotation statistics",
+    )
+    simulate.add_argument("--no-progress", action="store_true", help="no progress bar")
+    simulate.set_defaults(func=_cmd_simulate)
+
+    fit = commands.add_parser("fit", help="fit ω to a CSV of t,w,x,y,z observations")
+    fit.add_argument("file", help="CSV file: t,w,x,y,z per line, header optional")
+    fit.add_argument(
+        "--model", choices=("constant", "piecewise_linear", "spline"), default="constant"
+    )
+    fit.add_argument("--frame", choices=("world", "body"), default="world")
+    fit.add_argument("--knots", type=_positive_int, help="number of knots (time-varying models)")
+    fit.add_argument("--json", action="store_true", help="print the result as JSON")
+    fit.set_defaults(func=_cmd_fit)
+
+    bench = commands.add_parser("bench", help="the benchmark suite, quick preset")
+    bench.add_argument("bench_args", nargs=argparse.REMAINDER, help="passed to the suite")
+    bench.set_defaults(func=_cmd_bench)
+    return parser
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line with `argv` (default `sys.argv[1:]`); returns the exit status.
+
+    0 on success, 2 for a bad argument or file (one line on stderr), 130 when interrupted,
+    1 for an unexpected error (one line on stderr, never a traceback).
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        parser = _build_parser()
+        args = parser.parse_args(argv)
+        if args.distributed:
+            import jax
+
+            jax.distributed.initialize()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return int(args.func(args) or 0)
+    except CommandLineError as e:
+        print(f"{e.prog}: error: {_one_line(e)}", file=sys.stderr)
+        return 2
+    except ValueError as e:  # the library's argument checks
+        print(f"{_PROG}: error: {_one_line(e)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{_PROG}: interrupted", file=sys.stderr)
+        return 130
+    except SystemExit as e:  # --help / --version
+        return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
+    except BaseException as e:  # noqa: BLE001 (the contract: one line, never a traceback)
+        print(f"{_PROG}: internal error: {type(e).__name__}: {_one_line(e)}", file=sys.stderr)
+        return 1
