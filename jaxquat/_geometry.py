@@ -16,6 +16,7 @@ from ._numerics import (
     as_float_array,
     broadcast_batch,
     check_trailing,
+    cross,
     default_float_dtype,
     safe_norm,
     sum_squares,
@@ -27,7 +28,7 @@ from ._rotation import from_rotvec, to_rotvec
 def angle_between(p: ArrayLike, q: ArrayLike) -> Array:
     r"""The geodesic angle θ ∈ [0, π] of the rotation taking `p` to `q`.
 
-    $θ = 2\operatorname{atan2}(|\operatorname{vec}(p^* q)|, |w(p^* q)|)$: sign-invariant (p, −p and q,
+    $θ = 2\operatorname{atan2}(|\operatorname{vec}(p^* q)|, |w(p^* q)|)$ (never an arccos): sign-invariant (p, −p and q,
     −q give the same θ), scale-invariant (inputs need not be unit), and accurate to round-off for
     tiny angles, where $2\arccos|⟨p, q⟩|$ floors at ~2e-8 rad (NUMERICS.md §4).
 
@@ -43,8 +44,15 @@ def angle_between(p: ArrayLike, q: ArrayLike) -> Array:
     """
     p = check_trailing(p, 4, "p")
     q = check_trailing(q, 4, "q")
-    relative = multiply(conjugate(p), q)
-    return 2.0 * jnp.arctan2(safe_norm(relative[..., 1:]), jnp.abs(relative[..., 0]))
+    p, q = broadcast_batch((p, 1), (q, 1))
+    w = jnp.sum(p * q, axis=-1)  # w(p* q) = ⟨p, q⟩
+    # vec(p* q) = p_w q_v − q_w p_v − p_v × q_v, written in the difference d = ±q − p (sign of ⟨p, q⟩):
+    # p_w d_v − d_w p_v − p_v × d_v. Exactly 0 when q = ±p (the product form is not, once the
+    # compiler contracts it into fused multiply-adds), and free of cancellation for tiny angles.
+    sign = jnp.where(w < 0, -1.0, 1.0).astype(q.dtype)[..., None]
+    d = sign * q - p
+    vector = p[..., :1] * d[..., 1:] - d[..., :1] * p[..., 1:] - cross(p[..., 1:], d[..., 1:])
+    return 2.0 * jnp.arctan2(safe_norm(vector), jnp.abs(w))
 
 
 def slerp(p: ArrayLike, q: ArrayLike, t: ArrayLike) -> Array:
