@@ -1,0 +1,320 @@
+"""Tests for `simulate_ensemble` and `load_ensemble`: closed forms, chunking, streaming, sharding."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import assert_quat_close, random_unit
+
+import jaxquat
+from jaxquat import load_ensemble, simulate_ensemble
+
+
+def _ensemble(getkey, n, dtype=jnp.float64, scale=1.0):
+    q0 = random_unit(getkey(), (n,), dtype)
+    omega = scale * jax.random.normal(getkey(), (n, 3), dtype)
+    return q0, omega
+
+
+def _angle(p, q):
+    return np.asarray(jaxquat.angle_between(p, q))
+
+
+@pytest.mark.parametrize("frame", ["world", "body"])
+def test_constant_omega_matches_closed_form(getkey, frame):
+    q0, omega = _ensemble(getkey, 257)
+    dt, steps = 0.01, 120
+    result = simulate_ensemble(
+        q0, omega, dt, steps, frame=frame, save_every=40, statistics=True, chunk_size=80
+    )
+
+    def exact(t):
+        turn = jaxquat.from_rotvec(omega * t)
+        return jaxquat.multiply(turn, q0) if frame == "world" else jaxquat.multiply(q0, turn)
+
+    assert_quat_close(result.final, exact(dt * steps), atol=1e-12)
+    np.testing.assert_allclose(result.times, [0.0, 0.4, 0.8, 1.2], rtol=0, atol=1e-15)
+    assert result.saved.shape == (4, 257, 4)
+    for saved, t in zip(result.saved, result.times, strict=True):
+        assert_quat_close(saved, exact(t), atol=1e-12)
+    # Per-body statistics: path length |ω|T, net and farthest angles from the start.
+    speed = np.linalg.norm(np.asarray(omega), axis=-1)
+    np.testing.assert_allclose(result.total_angle, speed * dt * steps, rtol=1e-11)
+    np.testing.assert_allclose(result.angle_from_start, _angle(q0, exact(dt * steps)), atol=1e-12)
+    turn = np.mod(speed[:, None] * dt * np.arange(1, steps + 1), 2 * np.pi)
+    farthest = np.max(np.minimum(turn, 2 * np.pi - turn), axis=1)
+    np.testing.assert_allclose(result.max_angle_from_start, farthest, atol=1e-11)
+    np.testing.assert_array_equal(result.final_omega, omega)
+
+
+def test_rigid_bodies_match_simulate_rigid_body(getkey):
+    q0, omega = _ensemble(getkey, 64)
+    inertia = jnp.array([1.0, 2.0, 3.5])
+    result = simulate_ensemble(q0, omega, 0.02, 60, inertia=inertia, save_every=20, chunk_size=20)
+    qs, omegas = jaxquat.simulate_rigid_body(q0, omega, inertia, 0.02, 60, save_every=20)
+    np.testing.assert_array_equal(result.saved, qs)
+    np.testing.assert_array_equal(result.saved_omega, omegas)
+    # World-frame rates and per-body inertia matrices (angular momentum is conserved in the world).
+    matrices = jnp.broadcast_to(jnp.diag(inertia), (64, 3, 3))
+    world = simulate_ensemble(q0, omega, 0.02, 60, inertia=matrices, frame="world", chunk_size=25)
+    q_ref, w_ref = jaxquat.simulate_rigid_body(
+        q0, omega, inertia, 0.02, 60, frame="world", save="final"
+    )
+    np.testing.assert_allclose(world.final, q_ref, atol=1e-13)
+    np.testing.assert_allclose(world.final_omega, w_ref, atol=1e-12)
+
+    def momentum(q, w):
+        body = jaxquat.rotate(w, jaxquat.conjugate(q))
+        return jaxquat.rotate(inertia[None] * body, q)
+
+    np.testing.assert_allclose(
+        momentum(world.final, world.final_omega), momentum(q0, omega), atol=1e-5
+    )
+
+
+@pytest.mark.parametrize("method", ["magnus4", "cf4"])
+def test_time_dependent_omega_chunked_equals_unchunked_and_integrate(getkey, method):
+    q0, _ = _ensemble(getkey, 33)
+    rates = jax.random.normal(getkey(), (33, 3))
+
+    def omega(t, q):
+        return rates * jnp.cos(1.3 * t)
+
+    kwargs = dict(method=method, t0=0.25, save_every=8, statistics=True)
+    whole = simulate_ensemble(q0, omega, 0.05, 48, chunk_size=48, **kwargs)
+    pieces = simulate_ensemble(q0, omega, 0.05, 48, chunk_size=16, **kwargs)
+    assert pieces.num_chunks == 3 and whole.num_chunks == 1
+    for field in ("final", "saved", "total_angle", "max_angle_from_start", "angle_from_start"):
+        np.testing.assert_array_equal(getattr(whole, field), getattr(pieces, field), err_msg=field)
+    reference = jaxquat.integrate(q0, omega, 0.05, 48, method=method, t0=0.25, save_every=8)
+    np.testing.assert_allclose(whole.saved, reference, atol=1e-13)
+
+
+def test_float32_in_float32_out_and_chunking_is_exact(getkey):
+    q0, omega = _ensemble(getkey, 100, jnp.float32)
+    whole = simulate_ensemble(q0, omega, 1e-2, 300, chunk_size=300)
+    pieces = simulate_ensemble(q0, omega, 1e-2, 300, chunk_size=70)
+    assert whole.final.dtype == jnp.float32 and whole.angle_from_start.dtype == jnp.float32
+    np.testing.assert_array_equal(whole.final, pieces.final)
+    exact = jaxquat.multiply(
+        jaxquat.from_rotvec(omega.astype(jnp.float64) * 3.0), q0.astype(jnp.float64)
+    )
+    assert np.max(_angle(whole.final.astype(jnp.float64), exact)) < 2e-5
+
+
+def test_batch_shapes_broadcast_and_padding(getkey):
+    q0 = random_unit(getkey(), (3, 1))
+    omega = jax.random.normal(getkey(), (5, 3))
+    result = simulate_ensemble(q0, omega, 0.1, 7, save_every=7, chunk_size=3)
+    assert result.final.shape == (3, 5, 4) and result.saved.shape == (2, 3, 5, 4)
+    exact = jaxquat.multiply(jaxquat.from_rotvec(omega * 0.7), q0)
+    assert_quat_close(result.final, exact, atol=1e-13)
+    one = simulate_ensemble(jaxquat.identity(), jnp.array([0.0, 0.0, np.pi]), 0.01, 100)
+    assert_quat_close(one.final, jnp.array([0.0, 0.0, 0.0, 1.0]), atol=1e-13)
+
+
+def test_stream_to_file_reads_back_the_in_memory_states(getkey, tmp_path):
+    q0, omega = _ensemble(getkey, 50)
+    inertia = jnp.array([2.0, 1.0, 3.0])
+    kwargs = dict(inertia=inertia, save_every=5, statistics=True, chunk_size=15)
+    memory = simulate_ensemble(q0, omega, 0.01, 40, **kwargs)
+    streamed = simulate_ensemble(q0, omega, 0.01, 40, path=tmp_path / "run", **kwargs)
+    assert streamed.saved is None and streamed.path == str(tmp_path / "run")
+    data = load_ensemble(tmp_path / "run")
+    assert data["complete"] and data["steps_done"] == 40
+    np.testing.assert_array_equal(data["steps"], np.arange(0, 41, 5))
+    np.testing.assert_allclose(data["times"], memory.times, rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(data["states"], memory.saved)
+    np.testing.assert_array_equal(data["omegas"], memory.saved_omega)
+    for key in ("final", "final_omega", "total_angle", "max_angle_from_start"):
+        np.testing.assert_array_equal(data[key], getattr(streamed, key), err_msg=key)
+    assert data["metadata"]["method"] == "cf4" and data["metadata"]["frame"] == "body"
+    # Writing again into the same directory replaces the previous run.
+    simulate_ensemble(q0[:10], omega[:10], 0.01, 10, path=tmp_path / "run", save_every=10)
+    again = load_ensemble(tmp_path / "run")
+    assert again["states"].shape == (2, 10, 4)
+    assert sorted(os.listdir(tmp_path / "run")) == sorted(
+        [
+            "index.json",
+            "states_000000.npy",
+            "states_000001.npy",
+            "final.npy",
+            "final_omega.npy",
+            "angle_from_start.npy",
+        ]
+    )
+
+
+def test_interrupt_between_chunks_leaves_the_completed_chunks(getkey, tmp_path):
+    q0, omega = _ensemble(getkey, 40)
+    full = simulate_ensemble(q0, omega, 0.01, 100, save_every=5, chunk_size=20)
+    calls = []
+
+    def progress(done, total):
+        calls.append((done, total))
+        if done >= 40:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        simulate_ensemble(
+            q0,
+            omega,
+            0.01,
+            100,
+            save_every=5,
+            chunk_size=20,
+            path=tmp_path / "run",
+            progress=progress,
+        )
+    assert calls == [(20, 100), (40, 100)]
+    data = load_ensemble(tmp_path / "run")
+    assert not data["complete"] and data["steps_done"] == 40
+    np.testing.assert_array_equal(data["steps"], np.arange(0, 41, 5))
+    np.testing.assert_array_equal(data["states"], full.saved[:9])
+    with open(tmp_path / "run" / "index.json") as f:
+        assert json.load(f)["final"] == {}
+    assert not [name for name in os.listdir(tmp_path / "run") if name.endswith(".tmp")]
+
+
+def test_progress_is_off_by_default_and_a_bar_on_request(getkey, capsys):
+    q0, omega = _ensemble(getkey, 8)
+    simulate_ensemble(q0, omega, 0.01, 20, chunk_size=5)
+    assert capsys.readouterr().err == ""
+    simulate_ensemble(q0, omega, 0.01, 20, chunk_size=5, progress=True)
+    assert "ensemble" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        (dict(q0=np.ones((3, 3))), "q0"),
+        (dict(omega=np.ones((3, 2))), "omega"),
+        (dict(method="heun"), "method"),
+        (dict(frame="inertial"), "frame"),
+        (dict(num_steps=-1), "num_steps"),
+        (dict(num_steps=2.5), "num_steps"),
+        (dict(save_every=0), "save_every"),
+        (dict(chunk_size=0), "chunk_size"),
+        (dict(dt=np.ones(3)), "dt"),
+        (dict(torque=lambda t, q, w: w), "torque"),
+        (dict(inertia=np.array([1.0, -2.0, 3.0])), "inertia"),
+        (dict(inertia=np.ones((2, 2))), "inertia"),
+        (dict(inertia=np.ones(3), method="magnus4"), "method"),
+        (dict(omega=np.ones((4, 3)), q0=np.ones((3, 4))), "broadcast"),
+        (dict(progress="yes"), "progress"),
+        (dict(devices=[]), "devices"),
+    ],
+)
+def test_bad_arguments_raise_value_errors_naming_them(kwargs, name):
+    arguments = dict(q0=np.array([1.0, 0, 0, 0]), omega=np.zeros(3), dt=0.1, num_steps=3)
+    arguments.update(kwargs)
+    q0, omega, dt, steps = (arguments.pop(k) for k in ("q0", "omega", "dt", "num_steps"))
+    with pytest.raises(ValueError, match=name):
+        simulate_ensemble(q0, omega, dt, steps, **arguments)
+
+
+def test_bad_paths(tmp_path):
+    (tmp_path / "file").write_text("x")
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("keep me")
+    args = (np.array([1.0, 0, 0, 0]), np.zeros(3), 0.1, 2)
+    with pytest.raises(ValueError, match="not a directory"):
+        simulate_ensemble(*args, path=tmp_path / "file", save_every=1)
+    with pytest.raises(ValueError, match="not a jaxquat ensemble"):
+        simulate_ensemble(*args, path=tmp_path / "other", save_every=1)
+    assert (tmp_path / "other" / "notes.txt").read_text() == "keep me"
+    with pytest.raises(ValueError, match="index.json"):
+        load_ensemble(tmp_path / "other")
+
+
+_SHARDED = textwrap.dedent(
+    """
+    import jax, jax.numpy as jnp, numpy as np
+    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_numpy_rank_promotion", "raise")
+    import jaxquat
+    assert jax.device_count() == 4, jax.devices()
+    key_q, key_w = jax.random.split(jax.random.key(0))
+    out = {}
+    for n, inertia in ((1000, jnp.array([1.0, 2.0, 3.0])), (1001, None)):
+        q0 = jaxquat.random(key_q, (n,), jnp.float64)
+        omega = jax.random.normal(key_w, (n, 3), jnp.float64)
+        def run(**kw):
+            return jaxquat.simulate_ensemble(q0, omega, 0.01, 60, inertia=inertia, save_every=20,
+                                             chunk_size=40, statistics=True, **kw)
+        sharded = run()
+        single = run(devices=jax.devices()[:1])
+        out[n] = dict(
+            devices=len(sharded.sharding.device_set),
+            spec=str(sharded.sharding.spec),
+            mesh=dict(sharded.sharding.mesh.shape),
+            shards=sorted({s.data.shape[0] for s in sharded.final.addressable_shards}),
+            single_devices=len(single.sharding.device_set),
+            final=float(np.max(np.abs(np.asarray(sharded.final) - np.asarray(single.final)))),
+            saved=float(np.max(np.abs(np.asarray(sharded.saved) - np.asarray(single.saved)))),
+            total=float(np.max(np.abs(np.asarray(sharded.total_angle) - np.asarray(single.total_angle)))),
+            shape=list(sharded.final.shape),
+        )
+    import json; print(json.dumps(out))
+    """
+)
+
+
+def test_bodies_are_sharded_over_four_devices_and_match_one_device():
+    env = dict(
+        os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", _SHARDED], capture_output=True, text=True, env=env, timeout=300
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    even = out["1000"]
+    assert even["devices"] == 4 and even["mesh"] == {"bodies": 4} and "bodies" in even["spec"]
+    assert even["shards"] == [250]  # each device holds a quarter of the bodies
+    assert even["single_devices"] == 1
+    # 1000 rigid bodies; 1001 kinematic bodies padded to 1004 on the devices, padding dropped.
+    for n in ("1000", "1001"):
+        assert out[n]["final"] <= 1e-12 and out[n]["saved"] <= 1e-12 and out[n]["total"] <= 1e-12
+    assert out["1001"]["shape"] == [1001, 4]
+
+
+_MEMORY = textwrap.dedent(
+    """
+    import resource, sys, jax, jax.numpy as jnp
+    import jaxquat
+    n, path = 50_000, sys.argv[1]
+    q0 = jaxquat.random(jax.random.key(0), (n,), jnp.float32)
+    omega = jax.random.normal(jax.random.key(1), (n, 3), jnp.float32)
+    def run(steps):
+        return jaxquat.simulate_ensemble(q0, omega, 1e-3, steps, save_every=1, chunk_size=10, path=path)
+    run(10)  # compile
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    result = run(200)
+    after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    print(before, after, result.num_chunks)
+    """
+)
+
+
+def test_streaming_memory_is_bounded_by_the_chunk(tmp_path):
+    """Proxy for the 10⁶-body run: 200 saved steps (160 MB) streamed in chunks of 10 (8 MB)."""
+    proc = subprocess.run(
+        [sys.executable, "-c", _MEMORY, str(tmp_path / "run")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=dict(os.environ, JAX_PLATFORMS="cpu"),
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    before, after, chunks = (int(x) for x in proc.stdout.split())
+    assert chunks == 20
+    assert (after - before) * 1024 < 60e6, (before, after)
+    data = load_ensemble(tmp_path / "run")
+    assert data["states"].shape == (201, 50_000, 4) and data["complete"]
