@@ -260,8 +260,8 @@ def to_euler(q: ArrayLike, seq: str) -> Array:
     implements it. The first and third angles lie in [−π, π]; the middle one in [0, π] for proper Euler
     sequences (`zxz`, …) and in [−π/2, π/2] for Tait–Bryan ones (`xyz`, …). Within 1e-7 of gimbal lock
     (middle angle 0 or π; ±π/2 for Tait–Bryan) the split between first and third angle is not unique:
-    as SciPy does, the third angle (first, for intrinsic sequences) is set to 0 — without SciPy's
-    warning, since values are not inspected under `jit`.
+    as SciPy does, the third angle is set to 0 — without SciPy's warning, since values are not
+    inspected under `jit`.
 
     **Arguments:**
 
@@ -313,38 +313,47 @@ def to_euler(q: ArrayLike, seq: str) -> Array:
 def from_two_vectors(a: ArrayLike, b: ArrayLike) -> Array:
     r"""The shortest rotation taking the direction of `a` to the direction of `b`.
 
-    With unit â, b̂ and the bisector h = â + b̂: q = (â·ĥ, â × ĥ), ĥ = h/|h| — the half-angle form,
-    w = |h|/2 = cos(θ/2), free of the cancellation in 1 + â·b̂ near antiparallel vectors. For exactly
-    antiparallel inputs (h = 0) the shortest rotation is any half-turn about an axis ⟂ â; the one about
-    â × e is returned, e the basis vector least aligned with â.
+    With unit â, b̂, c = â × b̂ and the angle θ = atan2(|c|, â·b̂) ∈ [0, π]:
+
+    - for â·b̂ ≥ 0, the half-angle (bisector) form q = (|h|/2, c/|h|), h = â + b̂, which is smooth
+      at parallel vectors (value 1, derivative ½ dc there);
+    - for â·b̂ < 0, q = (cos(θ/2), sin(θ/2) n̂) with n̂ = c/|c| after removing from c the rounding
+      component along â (c ⟂ â exactly in real arithmetic). θ from atan2 avoids the cancellation in
+      1 + â·b̂, and n̂ ⟂ â keeps `rotate(a, q)` on the right side even when c is at rounding level.
+    - for exactly antiparallel inputs (c = 0) every half-turn about an axis ⟂ â is a shortest
+      rotation; the one about â × e is returned, e the basis vector least aligned with â.
 
     **Arguments:**
 
-    - `a`, `b`: vectors, shape `(..., 3)`, non-zero, any length; leading axes broadcast.
+    - `a`, `b`: non-zero vectors, shape `(..., 3)`, any lengths; leading axes broadcast.
 
     **Returns:** unit quaternions (w ≥ 0), shape `(..., 4)`, with `rotate(a, q)` parallel to `b`.
 
     **Gradient:** smooth except at antiparallel inputs, where the rotation is not unique: there it is
-    finite (the half-turn's axis depends on â only), and it grows like 1/|â + b̂| as b̂ → −â.
-    Zero vectors give NaN (there is no direction to align).
+    finite (NaN-free), and near them it grows like 1/|â + b̂|. Zero vectors give NaN (no direction).
     """
     a = check_trailing(a, 3, "a")
     b = check_trailing(b, 3, "b")
     a, b = broadcast_batch((a, 1), (b, 1))
     a_unit = a / jnp.sqrt(sum_squares(a, keepdims=True))
     b_unit = b / jnp.sqrt(sum_squares(b, keepdims=True))
-    h = a_unit + b_unit
-    h_sq = sum_squares(h, keepdims=True)
-    generic = h_sq > 0
-    h_norm = jnp.sqrt(jnp.where(generic, h_sq, jnp.ones_like(h_sq)))
-    h_unit = h / h_norm
-    bisector = jnp.concatenate(
-        [jnp.sum(a_unit * h_unit, axis=-1, keepdims=True), cross(a_unit, h_unit)], axis=-1
-    )
-    # Antiparallel: a half-turn about â × e, e = the basis vector of a's smallest component.
-    smallest = jnp.argmin(jnp.abs(a_unit), axis=-1)
-    basis = jnp.eye(3, dtype=a.dtype)[smallest]
-    perpendicular = cross(a_unit, basis)
-    perpendicular = perpendicular / jnp.sqrt(sum_squares(perpendicular, keepdims=True))
-    half_turn = jnp.concatenate([jnp.zeros_like(h_sq), perpendicular], axis=-1)
-    return jnp.where(generic, bisector, half_turn)
+    cosine = jnp.sum(a_unit * b_unit, axis=-1, keepdims=True)
+    c = cross(a_unit, b_unit)
+    acute = cosine >= 0
+    # Acute: bisector form (h is bounded away from 0 here).
+    h_sq = sum_squares(a_unit + b_unit, keepdims=True)
+    h_norm = jnp.sqrt(jnp.where(acute, h_sq, jnp.ones_like(h_sq)))
+    bisector = jnp.concatenate([0.5 * h_norm, c / h_norm], axis=-1)
+    # Obtuse: axis-angle form with the axis made exactly perpendicular to â.
+    c_perp = c - jnp.sum(c * a_unit, axis=-1, keepdims=True) * a_unit
+    s_sq = sum_squares(c_perp, keepdims=True)
+    has_axis = s_sq > 0
+    s = jnp.sqrt(jnp.where(has_axis, s_sq, jnp.ones_like(s_sq)))
+    # The antiparallel fallback axis â × e, e the basis vector of â's smallest component.
+    basis = jnp.eye(3, dtype=a.dtype)[jnp.argmin(jnp.abs(a_unit), axis=-1)]
+    fallback = cross(a_unit, basis)
+    fallback = fallback / jnp.sqrt(sum_squares(fallback, keepdims=True))
+    axis = jnp.where(has_axis, c_perp / s, fallback)
+    half = 0.5 * jnp.arctan2(jnp.where(has_axis, s, jnp.zeros_like(s)), cosine)
+    obtuse = jnp.concatenate([jnp.cos(half), jnp.sin(half) * axis], axis=-1)
+    return jnp.where(acute, bisector, obtuse)

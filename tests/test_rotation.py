@@ -1,0 +1,370 @@
+"""Rotations: the seeds' worked examples, SciPy agreement on 10⁴ random rotations (every conversion,
+all 12 Euler sequences in both cases), nearest-rotation `from_matrix`, two-vector alignment, closed-form
+derivatives at the identity, and bad-input errors."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import assert_quat_close, near_pi, quat_distance, random_unit
+from scipy.spatial.transform import Rotation
+
+import jaxquat as jq
+
+N = 10_000
+SEQUENCES = ["xyz", "xzy", "yxz", "yzx", "zxy", "zyx", "xyx", "xzx", "yxy", "yzy", "zxz", "zyz"]
+ALL_SEQUENCES = SEQUENCES + [s.upper() for s in SEQUENCES]
+
+
+@pytest.fixture(scope="module")
+def rotations():
+    """10⁴ Haar-random unit quaternions plus 10³ within 1e-6 … 1e-3 of a half-turn."""
+    key = jax.random.key(2024)
+    k1, k2, k3 = jax.random.split(key, 3)
+    q = random_unit(k1, (N,))
+    eps = 10.0 ** jax.random.uniform(k2, (1000,), minval=-6.0, maxval=-3.0)
+    half_turns = jax.vmap(lambda k, e: near_pi(k, e))(jax.random.split(k3, 1000), eps)
+    return np.asarray(jnp.concatenate([q, half_turns]))
+
+
+def wrapped(a):
+    """Angles mod 2π into (−π, π] (for comparing angles equal up to a full turn)."""
+    return np.angle(np.exp(1j * np.asarray(a)))
+
+
+# ---------------------------------------------------------------------------------------------------
+# The seeds' worked examples (issue 2, acceptance 1), to 1e-12.
+
+Q = np.array([1.0, 2.0, 3.0, 4.0])
+
+
+def test_seed_rotate_with_and_without_centre():
+    np.testing.assert_allclose(jq.rotate([3, 0, 0], Q), [-2, 2, 1], atol=1e-12)
+    np.testing.assert_allclose(jq.rotate([3, 0, 0], Q, [0, 0, 0]), [-2, 2, 1], atol=1e-12)
+    np.testing.assert_allclose(jq.rotate([1, 2, 3], jq.identity()), [1, 2, 3], atol=1e-12)
+
+
+def test_seed_composition():
+    q1, q2 = Q, np.array([4.0, 3.0, 2.0, 1.0])
+    v = np.array([9.0, 0.0, 0.0])
+    composed = jq.rotate(v, jq.multiply(q2, q1))
+    np.testing.assert_allclose(composed, [-1, -4, 8], atol=1e-12)
+    np.testing.assert_allclose(jq.rotate(jq.rotate(v, q1), q2), [-1, -4, 8], atol=1e-12)
+    # Rotations do not commute: q1 after q2 is a different rotation.
+    assert np.max(np.abs(jq.rotate(v, jq.multiply(q1, q2)) - composed)) > 1.0
+
+
+def test_seed_axis_angle():
+    q = jq.from_axis_angle([0, 0, 2], math.pi / 2)
+    np.testing.assert_allclose(q, [0.7071067811865476, 0, 0, 0.7071067811865475], atol=1e-12)
+    np.testing.assert_allclose(jq.rotate([1, 0, 0], q), [0, 1, 0], atol=1e-12)
+    # The seed's rotate(axis=[0,0,1], angle=π/2, center=[0,1,0]) of (1,0,0): (1,−1,0) ↦ (1,1,0), + c.
+    q = jq.from_axis_angle([0, 0, 1], math.pi / 2)
+    np.testing.assert_allclose(jq.rotate([1, 0, 0], q, center=[0, 1, 0]), [1, 2, 0], atol=1e-12)
+
+
+def test_seed_matrix_to_quaternion():
+    c = math.cos(math.pi / 4)
+    m = np.array([[c, -c, 0], [c, c, 0], [0, 0, 1]])
+    np.testing.assert_allclose(m @ [math.sqrt(2), 0, 0], [1, 1, 0], atol=1e-12)
+    q = jq.from_matrix(m)
+    np.testing.assert_allclose(q, [0.9238795325112867, 0, 0, 0.3826834323650898], atol=1e-12)
+    np.testing.assert_allclose(jq.rotate([math.sqrt(2), 0, 0], q), [1, 1, 0], atol=1e-12)
+
+
+def test_seed_quaternion_to_matrix():
+    m = np.asarray(jq.to_matrix(Q))
+    exact = np.array([[-2 / 3, 2 / 15, 11 / 15], [2 / 3, -1 / 3, 2 / 3], [1 / 3, 14 / 15, 2 / 15]])
+    np.testing.assert_allclose(m, exact, atol=1e-12)
+    printed = np.array(
+        [[-0.666667, 0.133333, 0.733333], [0.666667, -0.333333, 0.666667], [0.333333, 0.933333, 0.133333]]
+    )
+    np.testing.assert_allclose(m, printed, atol=5e-7)  # the seed prints 6 digits
+    np.testing.assert_allclose(m @ [3, 0, 0], [-2, 2, 1], atol=1e-12)
+    np.testing.assert_allclose(jq.rotate([3, 0, 0], Q), m @ [3, 0, 0], atol=1e-12)
+
+
+def test_seed_matrix_round_trips(rotations):
+    q = rotations[:1000]
+    m = jq.to_matrix(q)
+    np.testing.assert_allclose(jq.to_matrix(jq.from_matrix(m)), m, atol=1e-12)
+    assert_quat_close(jq.from_matrix(jq.to_matrix(q)), q, atol=1e-12)
+    # The seed's counterexample: q = −1 comes back as +1, the same rotation.
+    np.testing.assert_allclose(jq.from_matrix(jq.to_matrix([-1.0, 0, 0, 0])), [1, 0, 0, 0], atol=1e-12)
+
+
+# The DeformableBodies.jl example of seed 001: five point masses rotated by 1+2i+3j+4k about their
+# centre of mass (computed inline; the dynamics module comes later).
+SEED_MASSES = np.array(
+    [0.027623475555394572, 0.08235034045511802, 0.16330720003612642, 0.8618919657812625, 0.5806780634969708]
+)
+SEED_POSITIONS = np.array(
+    [
+        [0.622502144842952, 0.11921732534587282, 0.8843304426741481],
+        [0.9932241501452683, 0.334779563612172, 0.8007546565223924],
+        [0.386699947607279, 0.8099171674657109, 0.5908987643400341],
+        [0.000659859384851913, 0.7755364055477827, 0.37741989797604925],
+        [0.922564768890463, 0.04356399040074832, 0.18765714901619934],
+    ]
+)
+SEED_CENTRE = np.array([0.40704043526795597, 0.4993749112573767, 0.3619966261272671])
+SEED_ROTATED = np.array(
+    [
+        [0.5957564162308041, 1.1179577906424625, 0.14864795800777955],
+        [0.31606113462014573, 1.2375345239874034, 0.46226994400353016],
+        [0.629867962558881, 0.5349019262226586, 0.6755761877965223],
+        [0.7260927511178531, 0.14668287713769346, 0.48634359841711555],
+        [-0.1252661931427156, 0.8787684558838791, 0.08516928092044052],
+    ]
+)
+SEED_ROTATED_CENTRE = np.array([0.40704043526795597, 0.49937491125737676, 0.361996626127267])
+
+
+def test_seed_point_mass_rotation_about_centre_of_mass():
+    masses, positions = jnp.asarray(SEED_MASSES), jnp.asarray(SEED_POSITIONS)
+    centre = jnp.sum(masses[:, None] * positions, axis=0) / jnp.sum(masses)
+    np.testing.assert_allclose(centre, SEED_CENTRE, rtol=0, atol=1e-15)
+    rotated = jq.rotate(positions, Q, center=centre)
+    np.testing.assert_allclose(rotated, SEED_ROTATED, rtol=0, atol=1e-12)
+    # to the digits printed (17 significant): agreement to a few units in the last place.
+    assert np.max(np.abs(np.asarray(rotated) - SEED_ROTATED)) < 1e-15
+    rotated_centre = jnp.sum(masses[:, None] * rotated, axis=0) / jnp.sum(masses)
+    np.testing.assert_allclose(rotated_centre, SEED_ROTATED_CENTRE, rtol=0, atol=1e-15)
+    # Rotation about the centre of mass keeps it fixed and keeps every distance to it.
+    np.testing.assert_allclose(
+        np.linalg.norm(np.asarray(rotated) - SEED_CENTRE, axis=-1),
+        np.linalg.norm(SEED_POSITIONS - SEED_CENTRE, axis=-1),
+        atol=1e-15,
+    )
+
+
+# ---------------------------------------------------------------------------------------------------
+# SciPy, 10⁴ random rotations (+10³ near half-turns), float64 (issue 2, acceptance 2).
+
+
+def test_matrix_conversions_match_scipy(rotations):
+    r = Rotation.from_quat(rotations, scalar_first=True)
+    np.testing.assert_allclose(jq.to_matrix(rotations), r.as_matrix(), rtol=0, atol=1e-12)
+    from_m = np.asarray(jq.from_matrix(r.as_matrix()))
+    scipy_q = Rotation.from_matrix(r.as_matrix()).as_quat(scalar_first=True)
+    assert quat_distance(from_m, scipy_q) < 1e-12
+    assert np.all(from_m[:, 0] >= 0)
+    np.testing.assert_allclose(np.linalg.norm(from_m, axis=-1), 1.0, atol=1e-14)
+
+
+def test_rotvec_axis_angle_and_xyzw_match_scipy(rotations):
+    r = Rotation.from_quat(rotations, scalar_first=True)
+    rotvec = r.as_rotvec()
+    np.testing.assert_allclose(jq.to_rotvec(rotations), rotvec, rtol=0, atol=1e-12)
+    vectors = np.random.default_rng(0).normal(size=(N, 3)) * 2.0  # |r| up to ~8: past π too
+    scipy_q = Rotation.from_rotvec(vectors).as_quat(scalar_first=True)
+    assert quat_distance(jq.from_rotvec(vectors), scipy_q) < 1e-12
+    axis, angle = jq.to_axis_angle(rotations)
+    np.testing.assert_allclose(np.asarray(axis) * np.asarray(angle)[:, None], rotvec, rtol=0, atol=1e-12)
+    assert np.all((np.asarray(angle) >= 0) & (np.asarray(angle) <= np.pi))
+    angles = np.linalg.norm(vectors, axis=-1)
+    assert quat_distance(jq.from_axis_angle(3.0 * vectors, angles), scipy_q) < 1e-12
+    np.testing.assert_allclose(jq.to_xyzw(rotations), r.as_quat(), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(jq.from_xyzw(r.as_quat()), r.as_quat(scalar_first=True), rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(jq.from_xyzw(jq.to_xyzw(rotations)), rotations)
+
+
+def test_rotate_matches_scipy_apply(rotations):
+    rng = np.random.default_rng(1)
+    v, c = rng.normal(size=(len(rotations), 3)), rng.normal(size=(len(rotations), 3))
+    r = Rotation.from_quat(rotations, scalar_first=True)
+    np.testing.assert_allclose(jq.rotate(v, rotations), r.apply(v), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(jq.rotate(v, rotations, c), r.apply(v - c) + c, rtol=0, atol=1e-12)
+    # Non-unit quaternions rotate like their normalisation.
+    np.testing.assert_allclose(jq.rotate(v, 3.7 * rotations), r.apply(v), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("seq", ALL_SEQUENCES)
+def test_euler_matches_scipy(seq, rotations):
+    rng = np.random.default_rng(abs(hash(seq)) % 2**32)
+    angles = rng.uniform(-np.pi, np.pi, size=(N, 3))
+    if seq[0].lower() == seq[2].lower():
+        angles[:, 1] = np.abs(angles[:, 1])
+    else:
+        angles[:, 1] /= 2
+    scipy_q = Rotation.from_euler(seq, angles).as_quat(scalar_first=True)
+    assert quat_distance(jq.from_euler(seq, angles), scipy_q) < 1e-12
+    ours = np.asarray(jq.to_euler(rotations, seq))
+    theirs = Rotation.from_quat(rotations, scalar_first=True).as_euler(seq)
+    assert np.max(np.abs(wrapped(ours - theirs))) < 1e-12
+    # SciPy's ranges: first and third in [−π, π], middle in [0, π] (proper) or [−π/2, π/2].
+    assert np.all(np.abs(ours) <= np.pi)
+    if seq[0].lower() == seq[2].lower():
+        assert np.all((ours[:, 1] >= 0) & (ours[:, 1] <= np.pi))
+    else:
+        assert np.all(np.abs(ours[:, 1]) <= np.pi / 2)
+    # Round trip: the angles reproduce the rotation.
+    assert quat_distance(jq.from_euler(seq, ours), rotations) < 1e-12
+
+
+@pytest.mark.parametrize("seq", ["xyz", "ZYX", "zxz", "YXY"])
+def test_euler_gimbal_lock_follows_scipy(seq):
+    """At (and within 1e-7 of) gimbal lock the third angle is set to 0, as SciPy does."""
+    rng = np.random.default_rng(3)
+    proper = seq[0].lower() == seq[2].lower()
+    middles = [0.0, np.pi, 1e-8, np.pi - 1e-8] if proper else [np.pi / 2, -np.pi / 2, np.pi / 2 - 1e-8]
+    angles = rng.uniform(-np.pi, np.pi, size=(len(middles) * 50, 3))
+    angles[:, 1] = np.repeat(middles, 50)
+    q = Rotation.from_euler(seq, angles).as_quat(scalar_first=True)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "Gimbal lock detected", UserWarning)
+        theirs = Rotation.from_quat(q, scalar_first=True).as_euler(seq)
+    ours = np.asarray(jq.to_euler(q, seq))
+    assert np.max(np.abs(wrapped(ours - theirs))) < 1e-12
+    np.testing.assert_array_equal(ours[:, 2], 0.0)
+    assert quat_distance(jq.from_euler(seq, ours), q) < 1e-7  # exact up to the 1e-7 lock window
+
+
+# ---------------------------------------------------------------------------------------------------
+# from_matrix: the nearest rotation (acceptance 6), and derivatives.
+
+
+def test_from_matrix_is_the_nearest_rotation_and_differentiable():
+    rng = np.random.default_rng(4)
+    q = np.asarray(random_unit(jax.random.key(4), (200,)))
+    m = np.asarray(jq.to_matrix(q)) + 1e-3 * rng.normal(size=(200, 3, 3))
+    u, _, vt = np.linalg.svd(m)
+    d = np.sign(np.linalg.det(u @ vt))  # SO(3) projection: flip the smallest singular direction if needed
+    projection = np.einsum("nij,nj,njk->nik", u, np.stack([np.ones(200), np.ones(200), d], -1), vt)
+    nearest = np.asarray(jq.to_matrix(jq.from_matrix(m)))
+    assert np.max(np.abs(nearest - projection)) < 1e-6
+    assert np.max(np.abs(nearest - projection)) < 1e-13  # in fact exact to round-off
+    # Differentiable there: jacfwd == jacrev == central differences (all in one compiled call).
+    m0 = m[0]
+    h = 1e-6
+    steps = h * np.eye(9).reshape(9, 3, 3)
+    perturbed = np.concatenate([m0 + steps, m0 - steps])
+
+    @jax.jit
+    def derivatives(m0, perturbed):
+        return jax.jacfwd(jq.from_matrix)(m0), jax.jacrev(jq.from_matrix)(m0), jq.from_matrix(perturbed)
+
+    forward, reverse, values = derivatives(m0, perturbed)
+    fd = np.moveaxis((np.asarray(values[:9]) - np.asarray(values[9:])) / (2 * h), 0, -1).reshape(4, 3, 3)
+    np.testing.assert_allclose(forward, fd, atol=1e-8)
+    np.testing.assert_allclose(reverse, forward, atol=1e-12)
+    # Optimality: moving along any tangent direction of the result does not decrease ‖R − M‖².
+    q0 = jq.from_matrix(m0)
+    loss = lambda r: jnp.sum((jq.to_matrix(jq.multiply(jq.from_rotvec(r), q0)) - m0) ** 2)
+    np.testing.assert_allclose(jax.grad(loss)(jnp.zeros(3)), 0.0, atol=1e-13)
+
+
+def test_from_matrix_derivative_at_identity_closed_form():
+    """At M = I: q ≈ (1, (M₃₂ − M₂₃)/4, (M₁₃ − M₃₁)/4, (M₂₁ − M₁₂)/4) to first order."""
+    derivatives = jax.jit(lambda m: (jax.jacfwd(jq.from_matrix)(m), jax.jacrev(jq.from_matrix)(m)))
+    with jax.debug_nans(True):
+        forward, reverse = derivatives(jnp.eye(3))
+    expected = np.zeros((4, 3, 3))
+    for n, (i, j) in enumerate([(2, 1), (0, 2), (1, 0)]):
+        expected[n + 1, i, j], expected[n + 1, j, i] = 0.25, -0.25
+    np.testing.assert_allclose(forward, expected, atol=1e-14)
+    np.testing.assert_allclose(reverse, expected, atol=1e-14)
+
+
+def test_rotvec_derivatives_at_zero_closed_form():
+    """d from_rotvec / dr at 0 is ½·[0; I₃]; d to_rotvec / dq at the identity is [0 | 2·I₃]."""
+
+    @jax.jit
+    def derivatives(r, q):
+        return (
+            jax.jacfwd(jq.from_rotvec)(r),
+            jax.jacrev(jq.from_rotvec)(r),
+            jax.jacfwd(jq.to_rotvec)(q),
+            jax.jacrev(jq.to_rotvec)(q),
+        )
+
+    with jax.debug_nans(True):
+        fwd_from, rev_from, fwd_to, rev_to = derivatives(jnp.zeros(3), jq.identity())
+    for d_from in (fwd_from, rev_from):
+        np.testing.assert_array_equal(d_from, 0.5 * np.vstack([np.zeros((1, 3)), np.eye(3)]))
+    for d_to in (fwd_to, rev_to):
+        np.testing.assert_array_equal(d_to, np.hstack([np.zeros((3, 1)), 2.0 * np.eye(3)]))
+    np.testing.assert_array_equal(jq.from_rotvec(jnp.zeros(3)), [1, 0, 0, 0])
+    np.testing.assert_array_equal(jq.to_rotvec(jq.identity()), [0, 0, 0])
+
+
+# ---------------------------------------------------------------------------------------------------
+# from_two_vectors.
+
+
+def test_from_two_vectors_is_the_shortest_alignment():
+    rng = np.random.default_rng(5)
+    a, b = rng.normal(size=(1000, 3)), 3.0 * rng.normal(size=(1000, 3))
+    q = jq.from_two_vectors(a, b)
+    a_unit = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    b_unit = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    np.testing.assert_allclose(jq.rotate(a_unit, q), b_unit, atol=1e-12)
+    np.testing.assert_allclose(jnp.linalg.norm(q, axis=-1), 1.0, atol=1e-14)
+    axis, angle = jq.to_axis_angle(q)
+    between = np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1))
+    np.testing.assert_allclose(angle, between, atol=1e-12)  # the smallest possible angle
+    np.testing.assert_allclose(np.sum(np.asarray(axis) * a_unit, -1), 0.0, atol=1e-12)  # axis ⟂ a, b
+    np.testing.assert_allclose(np.sum(np.asarray(axis) * b_unit, -1), 0.0, atol=1e-12)
+    scipy_q = np.stack([Rotation.align_vectors(b[n][None], a[n][None])[0].as_quat(scalar_first=True) for n in range(20)])
+    assert quat_distance(q[:20], scipy_q) < 1e-12
+    assert_quat_close(jq.from_two_vectors([1.0, 2.0, 3.0], [2.0, 4.0, 6.0]), jq.identity(), atol=1e-15)
+
+
+def test_from_two_vectors_antiparallel_is_a_half_turn_without_nan():
+    a = np.array([[1.0, 0, 0], [0, 0, -2.0], [1.0, 2.0, 3.0], [-0.3, 0.1, 0.7]])
+    jacobian = jax.jit(jax.vmap(jax.jacrev(jq.from_two_vectors, argnums=(0, 1))))
+    with jax.debug_nans(True):
+        q = np.asarray(jq.from_two_vectors(a, -2.5 * a))
+        jac = jacobian(a, -2.5 * a)
+    assert np.all(np.isfinite(q)) and all(np.all(np.isfinite(j)) for j in jac)
+    np.testing.assert_allclose(q[:, 0], 0.0, atol=1e-15)  # a half-turn
+    np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-15)
+    np.testing.assert_allclose(np.sum(q[:, 1:] * a, -1), 0.0, atol=1e-15)  # axis ⟂ a
+    np.testing.assert_allclose(jq.rotate(a, q), -a, atol=1e-14)
+    # Nearly antiparallel (1e-9 rad off): still the exact shortest rotation, no cancellation.
+    b = np.asarray(jq.rotate(-a[0], jq.from_axis_angle([0, 0, 1], 1e-9)))
+    np.testing.assert_allclose(jq.rotate(a[0], jq.from_two_vectors(a[0], b)), b, atol=1e-15)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Bad input (acceptance 5).
+
+
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda: jq.from_matrix(np.eye(4)), r"`m` must have shape \(\.\.\., 3, 3\); got shape \(4, 4\)"),
+        (lambda: jq.to_matrix(np.zeros(3)), r"`q` must have shape \(\.\.\., 4\); got shape \(3,\)"),
+        (lambda: jq.from_euler("xyz", np.zeros(2)), r"`angles` must have shape \(\.\.\., 3\)"),
+        (lambda: jq.to_euler(np.zeros((2, 3)), "xyz"), r"`q` must have shape \(\.\.\., 4\)"),
+        (lambda: jq.rotate(np.zeros(3), Q, center=np.zeros(4)), r"`center` must have shape \(\.\.\., 3\)"),
+        (lambda: jq.from_two_vectors(np.zeros(2), np.ones(3)), r"`a` must have shape \(\.\.\., 3\)"),
+        (lambda: jq.from_rotvec(np.zeros((3, 4))), r"`r` must have shape \(\.\.\., 3\)"),
+        (lambda: jq.from_axis_angle(np.zeros(4), 1.0), r"`axis` must have shape \(\.\.\., 3\)"),
+        (lambda: jq.from_xyzw(np.zeros(3)), r"`q` must have shape \(\.\.\., 4\)"),
+    ],
+)
+def test_wrong_trailing_dimension_raises(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()
+
+
+@pytest.mark.parametrize("seq", ["xyw", "xxz", "xYz", "xy", "xyzx", "", 123, None, "XZZ"])
+def test_unknown_euler_sequence_raises(seq):
+    with pytest.raises(ValueError, match=r"`seq` must be 3 axes .*got"):
+        jq.from_euler(seq, np.zeros(3))
+    with pytest.raises(ValueError, match=r"`seq` must be 3 axes .*got"):
+        jq.to_euler(Q, seq)
+
+
+@pytest.mark.parametrize("frame", [1, None, "World", b"world"])
+def test_bad_frame_raises(frame):
+    with pytest.raises(ValueError, match=r"`frame` must be one of 'world', 'body'; got"):
+        jq.rate(Q, np.zeros(3), frame=frame)
+    with pytest.raises(ValueError, match=r"`frame` must be one of"):
+        jq.step(Q, np.zeros(3), 0.1, frame=frame)
