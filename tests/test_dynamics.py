@@ -144,6 +144,13 @@ def np_euler_rhs(moments, w):
     )
 
 
+# One compiled simulator shared by the tests (jit caches on the static arguments and the shapes, so
+# runs that differ only in values reuse the compilation).
+simulate = jax.jit(
+    jq.simulate_rigid_body,
+    static_argnames=("num_steps", "torque", "frame", "method", "save", "save_every"),
+)
+
 MOMENTS = np.array([1.0, 2.0, 3.0])
 Q0 = np.array([0.5, 0.5, -0.5, 0.5])
 # One initial rate on each side of the separatrix M² = 2EI₂, and one with negative components.
@@ -184,7 +191,7 @@ def test_reference_satisfies_the_equations_of_motion(omega0):
 @pytest.mark.parametrize("omega0", OMEGA0S)
 def test_torque_free_body_matches_closed_form(omega0):
     dt, num_steps, every = 1e-3, 20_000, 500
-    qs, omegas = jq.simulate_rigid_body(Q0, omega0, MOMENTS, dt, num_steps, save_every=every)
+    qs, omegas = simulate(Q0, omega0, MOMENTS, dt, num_steps, save_every=every)
     times = dt * every * np.arange(qs.shape[0])
     q_ref, omega_ref, _ = torque_free_reference(MOMENTS, omega0, Q0, times)
     assert times[-1] == pytest.approx(20.0)
@@ -219,7 +226,7 @@ def test_torque_free_body_with_full_inertia_matrix(getkey):
 
 def test_world_frame_matches_body_frame():
     omega0 = OMEGA0S[1]
-    q_body, w_body = jq.simulate_rigid_body(Q0, omega0, MOMENTS, 1e-3, 2_000, save_every=100)
+    q_body, w_body = simulate(Q0, omega0, MOMENTS, 1e-3, 2_000, save_every=100)
     w_world0 = jq.rotate(omega0, Q0)
     q_world, w_world = jq.simulate_rigid_body(
         Q0, w_world0, MOMENTS, 1e-3, 2_000, save_every=100, frame="world"
@@ -242,12 +249,15 @@ def test_conservation_over_1e5_steps():
 
 
 def test_fourth_order_convergence():
+    # Steps T/200, T/400, T/800 (T = 7.3, not a period): one compiled run of 800 steps per step size,
+    # read at step 200, 400 and 800 respectively.
     omega0 = OMEGA0S[0]
+    q_ref, w_ref, _ = torque_free_reference(MOMENTS, omega0, Q0, [7.3])
     errors = []
     for num_steps in (200, 400, 800):
-        q, w = jq.simulate_rigid_body(Q0, omega0, MOMENTS, 7.3 / num_steps, num_steps, save="final")
-        q_ref, w_ref, _ = torque_free_reference(MOMENTS, omega0, Q0, [7.3])
-        errors.append(quat_distance(q, q_ref[0]) + np.max(np.abs(w - w_ref[0])))
+        qs, ws = simulate(Q0, omega0, MOMENTS, 7.3 / num_steps, 800, save_every=200)
+        k = num_steps // 200
+        errors.append(quat_distance(qs[k], q_ref[0]) + np.max(np.abs(ws[k] - w_ref[0])))
     orders = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
     assert np.all(orders > 3.7), (errors, orders)
 
@@ -262,7 +272,7 @@ def test_intermediate_axis_flip_period():
     expected = 2 * info["K"] / info["lam"]
     assert info["m"] > 0.999 and expected > 15.0
     dt, num_steps = 2e-3, 35_000
-    _, omegas = jq.simulate_rigid_body(Q0, omega0, MOMENTS, dt, num_steps)
+    _, omegas = simulate(Q0, omega0, MOMENTS, dt, num_steps)
     w2 = np.asarray(omegas[:, 1])
     crossings = []
     for k in np.nonzero(np.sign(w2[1:]) != np.sign(w2[:-1]))[0]:
@@ -281,20 +291,24 @@ def test_intermediate_axis_flip_period():
 # Acceptance 3: torques
 
 
+@jax.jit
+def _spin_up(torque_vector):
+    """A body at rest under a constant body-frame torque, 300 steps of 0.01 s."""
+
+    def torque(t, q, omega):
+        return jnp.broadcast_to(torque_vector, omega.shape)
+
+    return jq.simulate_rigid_body(
+        Q0, jnp.zeros(3), MOMENTS, 0.01, 300, torque=torque, save_every=30
+    )
+
+
 @pytest.mark.parametrize("axis", [0, 1, 2])
 def test_constant_torque_gives_uniform_angular_acceleration(axis):
     inertia = MOMENTS
     tau = 0.7
-    torque_vector = np.eye(3)[axis] * tau
-
-    def torque(t, q, omega):
-        return jnp.broadcast_to(jnp.asarray(torque_vector), omega.shape)
-
-    dt, num_steps = 0.01, 300
-    qs, omegas = jq.simulate_rigid_body(
-        Q0, jnp.zeros(3), inertia, dt, num_steps, torque=torque, save_every=30
-    )
-    t = dt * 30 * np.arange(qs.shape[0])
+    qs, omegas = _spin_up(jnp.asarray(np.eye(3)[axis] * tau))
+    t = 0.3 * np.arange(qs.shape[0])
     alpha = tau / inertia[axis]
     np.testing.assert_allclose(omegas, np.outer(alpha * t, np.eye(3)[axis]), atol=1e-13)
     expected = np_multiply(Q0, np_axis_quaternion(axis, 0.5 * alpha * t**2))
@@ -318,6 +332,7 @@ def test_heavy_symmetric_top_steady_precession_and_fast_top_rate():
     i1, i3, mgl, theta = 1.0, 0.5, 1.0, 0.6
     inertia = np.array([i1, i1, i3])
     q0 = np_axis_quaternion(0, theta)
+    gravity = _gravity_torque(mgl)
     deviations = []
     for omega3 in (20.0, 40.0):
         b = i3 * omega3
@@ -325,13 +340,13 @@ def test_heavy_symmetric_top_steady_precession_and_fast_top_rate():
         omega0 = np.array([0.0, rate * np.sin(theta), omega3])
         dt, num_steps = 1e-3, 5_000
         # World-frame run (ω and torque in world coordinates).
-        qs, _ = jq.simulate_rigid_body(
+        qs, _ = simulate(
             q0,
             jq.rotate(omega0, q0),
             inertia,
             dt,
             num_steps,
-            torque=_gravity_torque(mgl),
+            torque=gravity,
             frame="world",
             save_every=500,
         )
@@ -819,14 +834,18 @@ def test_planar_zero_momentum_cycle_matches_quadrature():
     assert quat_distance(q_final, np_multiply(Q0, np_axis_quaternion(2, angle))) < 1e-10
 
 
-def test_three_dimensional_zero_momentum_cycle_converges():
+@jax.jit
+def _cycle_run(dt):
+    """400 steps of the 3-D shape cycle (period 1) with step dt, saved every 50 steps."""
     masses = jnp.asarray(CAT_MASSES)
-    finals = []
-    for num_steps in (50, 100, 200, 400):
-        q, _ = jq.simulate_deformable_body(
-            masses, _shape_cycle(), Q0, 1.0 / num_steps, num_steps, save="final"
-        )
-        finals.append(np.asarray(q))
+    qs, _ = jq.simulate_deformable_body(masses, _shape_cycle(), Q0, dt, 400, save_every=50)
+    return qs
+
+
+def test_three_dimensional_zero_momentum_cycle_converges():
+    # The state after one period with N = 50, 100, 200, 400 steps: one compiled run of 400 steps per
+    # step size, read at step N.
+    finals = [np.asarray(_cycle_run(1.0 / n)[n // 50]) for n in (50, 100, 200, 400)]
     net = np_multiply(np_conjugate(Q0), finals[-1])
     net_angle = 2 * np.arctan2(np.linalg.norm(net[1:]), abs(net[0]))
     assert net_angle > 0.05
@@ -840,8 +859,11 @@ def test_three_dimensional_zero_momentum_cycle_converges():
 # The same system as a diffrax vector field
 
 
-@pytest.mark.parametrize("frame", ["body", "world"])
-def test_rigid_body_vector_field_with_lie_group_solvers(frame):
+@pytest.mark.parametrize(
+    "frame, solver",
+    [("body", "CF4"), ("body", "RKMK45"), ("world", "CF4")],
+)
+def test_rigid_body_vector_field_with_lie_group_solvers(frame, solver):
     omega0 = OMEGA0S[0]
     q_ref, w_ref, _ = torque_free_reference(MOMENTS, omega0, Q0, [3.0])
     field = jq.rigid_body_vector_field(jnp.asarray(MOMENTS), frame=frame)
@@ -852,22 +874,25 @@ def test_rigid_body_vector_field_with_lie_group_solvers(frame):
     if frame == "body":
         np.testing.assert_allclose(q_dot, 0.5 * np_multiply(Q0, np.r_[0.0, omega0]), atol=1e-15)
         np.testing.assert_allclose(w_dot, np_euler_rhs(MOMENTS, omega0), atol=1e-15)
-    for solver, controller in (
-        (jq.CF4(), diffrax.ConstantStepSize()),
-        (jq.RKMK45(), diffrax.PIDController(rtol=1e-11, atol=1e-11)),
-    ):
-        solution = diffrax.diffeqsolve(
-            diffrax.ODETerm(field),
-            solver,
-            0.0,
-            3.0,
-            1e-2,
-            y0,
-            stepsize_controller=controller,
-            max_steps=10_000,
-        )
-        q_end, w_end = solution.ys[0][-1], solution.ys[1][-1]
-        if frame == "world":
-            w_end = jq.rotate(w_end, jq.conjugate(q_end))
-        assert quat_distance(q_end, q_ref[0]) < 1e-8
-        np.testing.assert_allclose(w_end, w_ref[0], atol=1e-8)
+    else:
+        np.testing.assert_allclose(q_dot, 0.5 * np_multiply(np.r_[0.0, w0], Q0), atol=1e-15)
+        np.testing.assert_allclose(w_dot, np_rotate(np_euler_rhs(MOMENTS, omega0), Q0), atol=1e-15)
+    if solver == "CF4":
+        solver, controller = jq.CF4(), diffrax.ConstantStepSize()
+    else:
+        solver, controller = jq.RKMK45(), diffrax.PIDController(rtol=1e-11, atol=1e-11)
+    solution = diffrax.diffeqsolve(
+        diffrax.ODETerm(field),
+        solver,
+        0.0,
+        3.0,
+        1e-2,
+        y0,
+        stepsize_controller=controller,
+        max_steps=10_000,
+    )
+    q_end, w_end = solution.ys[0][-1], solution.ys[1][-1]
+    if frame == "world":
+        w_end = jq.rotate(w_end, jq.conjugate(q_end))
+    assert quat_distance(q_end, q_ref[0]) < 1e-8
+    np.testing.assert_allclose(w_end, w_ref[0], atol=1e-8)
