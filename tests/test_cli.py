@@ -1,0 +1,268 @@
+"""Tests for the command line: one-line errors with exit 2, fit recovers ω, simulate writes, demo runs."""
+
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxquat
+from jaxquat._cli import main
+
+OMEGA = np.array([0.4, -0.25, 0.7])
+
+
+def _observations(count=40, noise=0.0, seed=0):
+    """Orientations of a body turning at the constant rate OMEGA (world frame), with optional noise."""
+    times = np.linspace(0.0, 6.0, count)
+    q_start = jaxquat.from_rotvec(jnp.array([0.3, -1.2, 0.5]))
+    qs = jaxquat.multiply(jaxquat.from_rotvec(times[:, None] * OMEGA), q_start)
+    if noise:
+        perturbation = noise * jax.random.normal(jax.random.key(seed), (count, 3))
+        qs = jaxquat.multiply(jaxquat.from_rotvec(perturbation), qs)
+    return times, np.array(qs)
+
+
+def _write_csv(path, times, qs, header=True):
+    lines = ["t,w,x,y,z"] if header else []
+    lines += [",".join(repr(float(v)) for v in (t, *q)) for t, q in zip(times, qs, strict=True)]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def _run(argv, capsys):
+    status = main([str(a) for a in argv])
+    captured = capsys.readouterr()
+    return status, captured.out, captured.err
+
+
+def _assert_one_line_error(status, err, *fragments):
+    assert status == 2, err
+    assert err.endswith("\n") and err.count("\n") == 1, repr(err)
+    assert "Traceback" not in err
+    for fragment in fragments:
+        assert fragment in err, (fragment, err)
+
+
+def test_fit_recovers_omega_from_a_generated_csv(tmp_path, capsys):
+    times, qs = _observations(noise=1e-4)
+    qs[::3] *= -1  # the sign of a quaternion does not matter
+    path = _write_csv(tmp_path / "obs.csv", times, qs)
+    status, out, err = _run(["fit", path, "--json"], capsys)
+    assert status == 0, err
+    report = json.loads(out)
+    assert np.linalg.norm(np.array(report["omega"]) - OMEGA) < 1e-4
+    assert report["converged"] and report["observations"] == 40
+    assert report["residual_rms_deg"] < 0.02
+    # Without a header, plain text output; exact data give ω to round-off.
+    times, qs = _observations()
+    path = _write_csv(tmp_path / "exact.csv", times, qs, header=False)
+    status, out, err = _run(["fit", path], capsys)
+    assert status == 0, err
+    printed = out.split("[", 1)[1].split("]", 1)[0]
+    np.testing.assert_allclose([float(v) for v in printed.split(",")], OMEGA, atol=1e-8)
+
+
+def _csv_cases(tmp_path):
+    times, qs = _observations(count=6)
+    good = [",".join(repr(float(v)) for v in (t, *q)) for t, q in zip(times, qs, strict=True)]
+
+    def write(name, lines):
+        path = tmp_path / name
+        path.write_text("\n".join(lines) + "\n")
+        return path
+
+    bad_time = good[:3] + [good[1]] + good[4:]
+    return [
+        (["fit", tmp_path / "missing.csv"], ["missing.csv", "no such file"]),
+        (["fit", write("empty.csv", [])], ["empty.csv", "empty"]),
+        (["fit", write("header_only.csv", ["t,w,x,y,z"])], ["no data rows"]),
+        (
+            ["fit", write("columns.csv", ["t,w,x,y,z"] + good[:2] + [good[2].rsplit(",", 1)[0]])],
+            ["line 4", "5 columns"],
+        ),
+        (
+            ["fit", write("text.csv", good[:1] + [good[1].replace(good[1].split(",")[2], "abc")])],
+            ["line 2", "column x", "abc"],
+        ),
+        (
+            [
+                "fit",
+                write(
+                    "nan.csv", good[:4] + [good[4].replace(good[4].split(",")[1], "nan")] + good[5:]
+                ),
+            ],
+            ["line 5", "column w", "not finite"],
+        ),
+        (["fit", write("order.csv", ["t,w,x,y,z"] + bad_time)], ["line 5", "times must increase"]),
+        (["fit", write("few.csv", good[:2])], ["at least 3"]),
+        (["fit", write("header.csv", ["time,qw,qx,qy,qz"] + good)], ["line 1", "header"]),
+        (["fit", write("zero.csv", good[:2] + ["9.0,0,0,0,0"])], ["line 3", "zero"]),
+        (["fit", tmp_path], ["is a directory"]),
+    ]
+
+
+def test_malformed_inputs_give_one_line_and_exit_2(tmp_path, capsys):
+    config_bad_syntax = tmp_path / "syntax.toml"
+    config_bad_syntax.write_text("bodies = 10\nsteps = = 3\n")
+    config_unknown = tmp_path / "unknown.toml"
+    config_unknown.write_text("bodies = 10\n\nspeed = 3\n")
+    config_bad_value = tmp_path / "value.toml"
+    config_bad_value.write_text("# an ensemble\nbodies = -4\n")
+    config_bad_type = tmp_path / "type.toml"
+    config_bad_type.write_text('dt = "fast"\n')
+    cases = _csv_cases(tmp_path) + [
+        ([], ["required"]),
+        (["teleport"], ["invalid choice"]),
+        (["simulate", "--bodies", "-5"], ["--bodies", "positive integer"]),
+        (["simulate", "--dt", "nan"], ["--dt", "finite"]),
+        (["simulate", "--inertia", "1,2"], ["--inertia", "three"]),
+        (
+            [
+                "simulate",
+                "--bodies",
+                "4",
+                "--steps",
+                "2",
+                "--method",
+                "heun",
+                "--no-progress",
+                "--output",
+                tmp_path / "out",
+            ],
+            ["method", "heun"],
+        ),
+        (["simulate", "--config", tmp_path / "nope.toml"], ["nope.toml", "no such file"]),
+        (["simulate", "--config", config_bad_syntax], ["syntax.toml", "invalid TOML", "line 2"]),
+        (["simulate", "--config", config_unknown], ["unknown.toml line 3", "speed"]),
+        (["simulate", "--config", config_bad_value], ["value.toml line 2", "bodies"]),
+        (["simulate", "--config", config_bad_type], ["type.toml line 1", "dt"]),
+        (["demo", "--output", tmp_path / "no" / "such" / "dir.png"], ["does not exist"]),
+        (["demo", "--output", tmp_path / "figure.jpg"], [".png"]),
+        (["fit", "--model", "cubic", "x.csv"], ["--model", "cubic"]),
+    ]
+    assert len(cases) >= 10
+    for argv, fragments in cases:
+        status, out, err = _run(argv, capsys)
+        _assert_one_line_error(status, err, *fragments)
+        assert out == "", (argv, out)
+
+
+def test_unexpected_errors_are_one_line_too(monkeypatch, capsys):
+    def broken(args):
+        raise RuntimeError("something\nbroke")
+
+    monkeypatch.setattr("jaxquat._cli._cmd_bench", broken)
+    status, out, err = _run(["bench"], capsys)
+    assert status == 1 and err == "jaxquat: internal error: RuntimeError: something broke\n"
+
+
+def test_bench_without_the_suite_is_a_one_line_error(monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "jaxquat._bench", None)  # makes the import fail
+    status, out, err = _run(["bench"], capsys)
+    _assert_one_line_error(status, err, "benchmark suite")
+
+
+def test_bench_passes_the_quick_preset(monkeypatch, capsys):
+    calls = []
+    fake = type(sys)("jaxquat._bench")
+    fake.main = lambda argv: calls.append(argv) or 0
+    monkeypatch.setitem(sys.modules, "jaxquat._bench", fake)
+    monkeypatch.setattr(jaxquat, "_bench", fake, raising=False)
+    status, _, err = _run(["bench", "--workloads", "W1"], capsys)
+    assert status == 0, err
+    assert calls == [["--preset", "quick", "--workloads", "W1"]]
+
+
+def test_help_exits_0(capsys):
+    status, out, _ = _run(["--help"], capsys)
+    assert status == 0 and "simulate" in out
+
+
+def test_simulate_from_toml_writes_a_readable_ensemble(tmp_path, capsys):
+    config = tmp_path / "run.toml"
+    output = tmp_path / "ensemble"
+    config.write_text(
+        f"bodies = 300\nsteps = 40\ndt = 0.05\nomega_mean = [0.0, 0.0, 1.0]\nomega_scale = 0.0\n"
+        f'save_every = 10\nchunk_size = 20\noutput = "{output}"\n'
+    )
+    status, out, err = _run(
+        ["simulate", "--config", config, "--steps", "60", "--no-progress"], capsys
+    )
+    assert status == 0, err
+    assert "300 kinematic bodies, 60 steps" in out and "throughput" in out
+    data = jaxquat.load_ensemble(output)
+    assert data["complete"] and data["states"].shape == (7, 300, 4)
+    # Every body turns about z at 1 rad/s: 3 rad after 60 steps of 0.05 s.
+    np.testing.assert_allclose(data["total_angle"], 3.0, rtol=1e-5)
+    turned = jaxquat.multiply(jaxquat.from_rotvec(jnp.array([0.0, 0.0, 3.0])), data["states"][0])
+    np.testing.assert_allclose(
+        np.abs(np.sum(np.asarray(turned) * data["final"], -1)), 1.0, atol=1e-5
+    )
+
+
+def test_simulate_rigid_bodies_from_options(tmp_path, capsys):
+    status, out, err = _run(
+        [
+            "simulate",
+            "--bodies",
+            "50",
+            "--steps",
+            "20",
+            "--inertia",
+            "1,2,3",
+            "--dtype",
+            "float64",
+            "--no-statistics",
+            "--no-progress",
+            "--output",
+            tmp_path / "rigid",
+        ],
+        capsys,
+    )
+    assert status == 0, err
+    assert "rigid bodies" in out and "cf4 / body / float64" in out
+    data = jaxquat.load_ensemble(tmp_path / "rigid")
+    assert data["final"].dtype == np.float64 and "total_angle" not in data
+
+
+def _cli(*argv, cwd, timeout=600):
+    env = dict(os.environ, MPLBACKEND="Agg", JAX_PLATFORMS="cpu", JAX_NUMPY_RANK_PROMOTION="raise")
+    return subprocess.run(
+        [sys.executable, "-m", "jaxquat", *map(str, argv)],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env=env,
+        timeout=timeout,
+    )
+
+
+def test_python_m_jaxquat_demo_writes_its_png(tmp_path):
+    proc = _cli("demo", "--bodies", "20000", "--no-progress", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    png = tmp_path / "jaxquat_demo.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "attitude spread" in proc.stdout and "fitted ω" in proc.stdout
+    assert "converged: True" in proc.stdout
+
+
+def test_python_m_jaxquat_bad_file_in_a_real_process(tmp_path):
+    (tmp_path / "bad.csv").write_text("t,w,x,y,z\n0,1,0,0,0\n1,1,0,0\n")
+    proc = _cli("fit", "bad.csv", cwd=tmp_path)
+    assert proc.returncode == 2
+    assert (
+        proc.stderr == "jaxquat fit: error: bad.csv line 3: expected 5 columns (t,w,x,y,z), got 4\n"
+        or (proc.stderr.count("\n") == 1 and "line 3" in proc.stderr)
+    )
+    assert proc.stdout == ""
+
+
+@pytest.mark.parametrize("argv", [["fit", "x.csv", "--bogus"], ["demo", "--bodies", "3", "extra"]])
+def test_unknown_global_option(argv, capsys):
+    status, _, err = _run(argv, capsys)
+    _assert_one_line_error(status, err, "unrecognized arguments")
