@@ -225,9 +225,9 @@ def check_unit(q: ArrayLike, *, atol: float | None = None) -> Array:
     """Return `q` unchanged, raising at run time if some |q| differs from 1 by more than `atol`.
 
     Opt-in value check (DESIGN.md §Errors) built on `equinox.error_if`: works eagerly and under `jit`,
-    `vmap` and autodiff (derivative: the identity). Eagerly it raises `equinox.EquinoxRuntimeError`;
-    under `jax.jit` a `jax.errors.JaxRuntimeError` (both `RuntimeError`s) whose message says
-    "not unit". NaN norms fail the check too.
+    `vmap` and autodiff (derivative: the identity). A failing check raises at run time an error whose
+    message contains "not unit" (`equinox.EquinoxRuntimeError` eagerly; through XLA's callback
+    machinery under `jax.jit`, a `jax.errors.JaxRuntimeError` or `ValueError`). NaN norms fail too.
 
     **Arguments:**
 

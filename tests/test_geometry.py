@@ -1,0 +1,247 @@
+"""Geometry: geodesic angle, slerp, squad, canonicalisation, Haar sampling, the chordal mean and the
+opt-in unit check — against SciPy, closed forms and statistics."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import assert_quat_close, quat_distance, random_unit
+from scipy import stats
+from scipy.spatial.transform import Rotation, Slerp
+
+import jaxquat as jq
+
+
+@pytest.fixture(scope="module")
+def pairs():
+    k1, k2 = jax.random.split(jax.random.key(11))
+    return np.asarray(random_unit(k1, (10_000,))), np.asarray(random_unit(k2, (10_000,)))
+
+
+# ---------------------------------------------------------------------------------------------------
+# angle_between
+
+
+def test_angle_between_matches_scipy_and_is_sign_invariant(pairs):
+    p, q = pairs
+    expected = (
+        Rotation.from_quat(p, scalar_first=True).inv() * Rotation.from_quat(q, scalar_first=True)
+    ).magnitude()
+    angle = np.asarray(jq.angle_between(p, q))
+    np.testing.assert_allclose(angle, expected, rtol=0, atol=1e-12)
+    assert np.all((angle >= 0) & (angle <= np.pi))
+    np.testing.assert_allclose(jq.angle_between(-p, q), angle, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(jq.angle_between(p, -2.0 * q), angle, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(jq.angle_between(q, p), angle, rtol=0, atol=1e-12)
+
+
+def test_angle_between_is_accurate_for_tiny_angles():
+    p = np.asarray(random_unit(jax.random.key(12), (5,)))
+    for angle in [1e-14, 1e-10, 1e-6]:
+        q = jq.multiply(p, jq.from_axis_angle([1.0, -2.0, 0.5], angle))
+        # q itself is rounded (~1e-16 per component): that, not the formula, bounds the agreement.
+        np.testing.assert_allclose(jq.angle_between(p, q), angle, rtol=0, atol=5e-16)
+        np.testing.assert_allclose(jq.angle_between(p, -q), angle, rtol=0, atol=5e-16)
+        # 2·acos|⟨p, q⟩| cannot resolve angles below ~2e-8 rad.
+        if angle < 1e-8:
+            acos_angle = 2.0 * np.arccos(np.minimum(np.abs(np.sum(p * np.asarray(q), -1)), 1.0))
+            assert np.max(np.abs(acos_angle - angle)) > 1e-9
+    np.testing.assert_array_equal(jq.angle_between(p, p), 0.0)
+    np.testing.assert_array_equal(jq.angle_between(p, -p), 0.0)
+
+
+def test_angle_between_gradient_near_and_at_zero():
+    """Along the geodesic q(t) = p ⊗ exp(t n̂), dθ/dt = 1 for t > 0 (the cone's slope), also at
+    t = 1e-12 where finite differences cannot resolve it; at t = 0 the gradient is exactly 0."""
+    p = np.asarray(random_unit(jax.random.key(13)))
+    n = np.array([0.6, -0.8, 0.0])
+
+    def along(t):
+        return jq.angle_between(p, jq.multiply(p, jq.from_rotvec(t * n)))
+
+    @jax.jit
+    def slopes(ts):
+        return jax.vmap(jax.grad(along))(ts), jax.vmap(lambda t: jax.jvp(along, (t,), (1.0,))[1])(ts)
+
+    ts = jnp.array([1e-12, 1e-6, 0.3, 3.0])
+    with jax.debug_nans(True):
+        reverse, forward = slopes(ts)
+        at_zero = jax.jit(jax.grad(jq.angle_between, argnums=(0, 1)))(p, p)
+    np.testing.assert_allclose(reverse, 1.0, rtol=1e-7)
+    np.testing.assert_allclose(forward, 1.0, rtol=1e-7)
+    for g in at_zero:
+        np.testing.assert_array_equal(g, 0.0)
+
+
+# ---------------------------------------------------------------------------------------------------
+# slerp and squad
+
+
+def test_slerp_matches_scipy_and_has_constant_speed(pairs):
+    p, q = pairs[0][:500], pairs[1][:500]
+    ts = np.linspace(0.0, 1.0, 7)
+    ours = np.asarray(jq.slerp(p[:, None], q[:, None], ts[None, :]))
+    for n in range(20):
+        scipy_path = Slerp([0.0, 1.0], Rotation.from_quat(np.stack([p[n], q[n]]), scalar_first=True))(ts)
+        assert quat_distance(ours[n], scipy_path.as_quat(scalar_first=True)) < 1e-12
+    total = np.asarray(jq.angle_between(p, q))
+    np.testing.assert_allclose(jq.angle_between(p[:, None], ours), total[:, None] * ts, atol=1e-12)
+    np.testing.assert_array_equal(ours[:, 0], p)  # exactly p at t = 0
+    assert_quat_close(ours[:, -1], q, atol=1e-12)
+    # Shortest arc, hence sign-invariant in q.
+    assert quat_distance(jq.slerp(p[:, None], -q[:, None], ts[None, :]), ours) < 1e-12
+
+
+def test_squad_endpoints_and_reduction_to_slerp(pairs):
+    p, q, a, b = pairs[0][:4], pairs[1][:4], pairs[0][4:8], pairs[1][4:8]
+    t = np.array([0.0, 0.25, 0.7, 1.0])[:, None]
+    out = np.asarray(jq.squad(p, a, b, q, t))
+    assert_quat_close(out[0], p, atol=1e-14)
+    assert_quat_close(out[-1], q, atol=1e-12)
+    assert_quat_close(jq.squad(p, p, q, q, t), jq.slerp(p, q, t), atol=1e-12)
+
+
+def test_squad_spline_has_continuous_angular_velocity():
+    """With Shoemake's control points the piecewise squad curve is C¹ at the interior keys."""
+    keys = np.asarray(random_unit(jax.random.key(14), (5,)))
+    # A smooth-ish key sequence: small steps, mixed signs (the construction must not care).
+    keys = np.asarray(
+        jq.multiply(jq.from_rotvec(0.4 * np.arange(5)[:, None] * np.array([0.3, 1.0, -0.5])), keys[0])
+    ) * np.array([1, -1, 1, 1, -1])[:, None]
+    controls = np.stack(
+        [np.asarray(jq.squad_control_points(keys[i - 1], keys[i], keys[i + 1])) for i in range(1, 4)]
+    )
+
+    def omega(p, a, b, q, t):  # world-frame angular velocity 2·vec(q̇ q*) of a squad segment
+        value, derivative = jax.jvp(lambda s: jq.squad(p, a, b, q, s), (t,), (1.0,))
+        return 2.0 * jq.vector_part(jq.multiply(derivative, jq.conjugate(value)))
+
+    @jax.jit
+    def key_velocities(keys, controls):
+        # interior key 2: the end of segment 1 and the start of segment 2; then plain slerp chains.
+        left = omega(keys[1], controls[0], controls[1], keys[2], 1.0)
+        right = omega(keys[2], controls[1], controls[2], keys[3], 0.0)
+        slerp_left = omega(keys[1], keys[1], keys[2], keys[2], 1.0)
+        slerp_right = omega(keys[2], keys[2], keys[3], keys[3], 0.0)
+        return left, right, slerp_left, slerp_right
+
+    left, right, slerp_left, slerp_right = key_velocities(keys, controls)
+    np.testing.assert_allclose(left, right, atol=1e-10)
+    assert np.linalg.norm(left) > 0.1
+    # Without the control points (squad(p, p, q, q) is a plain slerp chain) the velocity jumps.
+    assert np.max(np.abs(np.asarray(slerp_left) - np.asarray(slerp_right))) > 1e-3
+
+
+# ---------------------------------------------------------------------------------------------------
+# canonicalize, random
+
+
+def test_canonicalize_matches_scipy(pairs):
+    p = pairs[0][:1000] * np.where(np.arange(1000) % 2, 1.0, -1.0)[:, None]
+    special = np.array(
+        [[0.0, -0.6, 0.8, 0.0], [0.0, 0.0, -1.0, 0.0], [0.0, 0.0, 0.0, -1.0], [-1.0, 0, 0, 0], [0, 0.6, -0.8, 0]]
+    )
+    q = np.concatenate([p, special])
+    ours = np.asarray(jq.canonicalize(q))
+    scipy_canonical = Rotation.from_quat(q, scalar_first=True).as_quat(canonical=True, scalar_first=True)
+    np.testing.assert_allclose(ours, scipy_canonical, rtol=0, atol=1e-15)  # SciPy renormalises
+    assert np.all(ours[:, 0] >= 0)
+    np.testing.assert_allclose(jq.to_matrix(ours), jq.to_matrix(q), atol=1e-15)
+    np.testing.assert_array_equal(jq.canonicalize(ours), ours)
+
+
+def test_random_is_haar_uniform():
+    q = np.asarray(jq.random(jax.random.key(15), (20_000,)))
+    np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-15)
+    angle = 2.0 * np.arctan2(np.linalg.norm(q[:, 1:], axis=-1), np.abs(q[:, 0]))
+    # The rotation angle has density (1 − cos θ)/π on [0, π]: CDF (θ − sin θ)/π.
+    result = stats.kstest(angle, lambda t: (t - np.sin(t)) / np.pi)
+    assert result.pvalue > 1e-3
+    # ... and a uniform density in θ would be rejected: the test has power.
+    assert stats.kstest(np.random.default_rng(0).uniform(0, np.pi, 20_000), lambda t: (t - np.sin(t)) / np.pi).pvalue < 1e-6
+    # Haar measure: E[R] = 0 (each entry has variance 1/3; 5 standard errors).
+    mean_matrix = np.mean(np.asarray(jq.to_matrix(q)), axis=0)
+    assert np.max(np.abs(mean_matrix)) < 5 * math.sqrt(1 / 3 / len(q))
+    # Rotated axes are uniform on the sphere: E[R e_z] = 0 and E[(R e_z)(R e_z)ᵀ] = I/3.
+    z = np.asarray(jq.rotate(np.array([0.0, 0.0, 1.0]), q))
+    np.testing.assert_allclose(z.T @ z / len(z), np.eye(3) / 3, atol=0.02)
+    q32 = jq.random(jax.random.key(15), (3,), jnp.float32)
+    assert q32.dtype == jnp.float32
+    with pytest.raises(ValueError, match="`dtype` must be a float dtype"):
+        jq.random(jax.random.key(0), (), jnp.int32)
+
+
+# ---------------------------------------------------------------------------------------------------
+# mean
+
+
+def test_mean_matches_scipy_with_and_without_weights(pairs):
+    rng = np.random.default_rng(16)
+    centre = pairs[0][0]
+    spread = np.asarray(jq.from_rotvec(0.8 * rng.normal(size=(2000, 3))))
+    q = np.asarray(jq.multiply(centre, spread)) * rng.choice([-1.0, 1.0], size=(2000, 1))
+    weights = rng.uniform(0.0, 2.0, size=2000)
+    r = Rotation.from_quat(q, scalar_first=True)
+    assert_quat_close(jq.mean(q), r.mean().as_quat(scalar_first=True), atol=1e-12)
+    assert_quat_close(jq.mean(q, weights), r.mean(weights).as_quat(scalar_first=True), atol=1e-12)
+    # Widely spread (Haar-random) sets too.
+    r_all = Rotation.from_quat(pairs[0], scalar_first=True)
+    assert_quat_close(jq.mean(pairs[0]), r_all.mean().as_quat(scalar_first=True), atol=1e-12)
+    # Sign-invariant, w ≥ 0, and a batch of groups with `axis`.
+    assert jq.mean(q)[0] >= 0
+    np.testing.assert_allclose(jq.mean(-q, weights), jq.mean(q, weights), atol=1e-14)
+    groups = q[:1000].reshape(10, 100, 4)
+    batched = np.asarray(jq.mean(groups, axis=1))
+    for g in range(10):
+        assert_quat_close(batched[g], Rotation.from_quat(groups[g], scalar_first=True).mean().as_quat(scalar_first=True), atol=1e-12)
+    assert_quat_close(jq.mean(groups.transpose(1, 0, 2), axis=0), batched, atol=1e-14)
+
+
+def test_mean_closed_forms():
+    q = np.asarray(random_unit(jax.random.key(17)))
+    np.testing.assert_allclose(jq.mean(np.stack([q, -q, q])), q * np.sign(q[0]), atol=1e-14)
+    # Two rotations about one axis: the mean is the rotation halfway between them.
+    a = jq.from_axis_angle([0.0, 0.0, 1.0], 0.2)
+    b = jq.from_axis_angle([0.0, 0.0, 1.0], 1.0)
+    assert_quat_close(jq.mean(np.stack([a, b])), jq.from_axis_angle([0.0, 0.0, 1.0], 0.6), atol=1e-14)
+    # Weights (w, 1−w) on a symmetric pair ±φ about an axis: the chordal mean solves tan 2ψ = (2w−1) tan 2φ·…
+    # — check the simplest case: weight 0 returns the other rotation exactly.
+    assert_quat_close(jq.mean(np.stack([a, b]), np.array([0.0, 1.0])), b, atol=1e-14)
+
+
+def test_mean_bad_arguments():
+    q = np.asarray(random_unit(jax.random.key(18), (4, 3)))
+    with pytest.raises(ValueError, match=r"`weights` must broadcast to the batch shape \(4, 3\)"):
+        jq.mean(q, np.ones(5))
+    with pytest.raises(ValueError, match="`axis`"):
+        jq.mean(q, axis=2)
+    with pytest.raises(ValueError, match=r"`q` must have shape \(\.\.\., 4\)"):
+        jq.mean(q[..., :3])
+
+
+# ---------------------------------------------------------------------------------------------------
+# check_unit
+
+
+def test_check_unit_passes_unit_and_rejects_others():
+    q = jq.random(jax.random.key(19), (3,))
+    np.testing.assert_array_equal(jq.check_unit(q), q)
+    np.testing.assert_array_equal(jax.jit(jq.check_unit)(q), q)
+    bad = q.at[1].multiply(1.01)
+    with pytest.raises(RuntimeError, match="not unit"):
+        jq.check_unit(bad)
+    # Through XLA's callback machinery the error class varies (JaxRuntimeError / ValueError); the
+    # message is the contract.
+    with pytest.raises((RuntimeError, ValueError), match="not unit"):
+        jax.block_until_ready(jax.jit(jq.check_unit)(bad))
+    with pytest.raises((RuntimeError, ValueError), match="not unit"):
+        jq.check_unit(q.at[0, 0].set(jnp.nan))
+    np.testing.assert_array_equal(jq.check_unit(bad, atol=0.02), bad)
+    q32 = q.astype(jnp.float32)
+    np.testing.assert_array_equal(jq.check_unit(q32), q32)  # default atol √ε(float32)
+    # Differentiable: the identity map.
+    np.testing.assert_array_equal(jax.jacrev(lambda x: jq.check_unit(x))(q[0]), np.eye(4))
