@@ -109,9 +109,8 @@ def test_squad_spline_has_continuous_angular_velocity():
     """With Shoemake's control points the piecewise squad curve is C¹ at the interior keys."""
     keys = np.asarray(random_unit(jax.random.key(14), (5,)))
     # A smooth-ish key sequence: small steps, mixed signs (the construction must not care).
-    keys = np.asarray(
-        jq.multiply(jq.from_rotvec(0.4 * np.arange(5)[:, None] * np.array([0.3, 1.0, -0.5])), keys[0])
-    ) * np.array([1, -1, 1, 1, -1])[:, None]
+    steps = np.array([[0, 0, 0], [0.3, 0.1, 0], [0.5, 0.6, 0.2], [0.4, 1.0, 0.7], [0.9, 1.2, 0.5]])
+    keys = np.asarray(jq.multiply(jq.from_rotvec(steps), keys[0])) * np.array([1, -1, 1, 1, -1])[:, None]
     controls = np.stack(
         [np.asarray(jq.squad_control_points(keys[i - 1], keys[i], keys[i + 1])) for i in range(1, 4)]
     )
