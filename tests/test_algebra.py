@@ -1,0 +1,146 @@
+"""Quaternion algebra against the Hamilton table, the seed's definitions, SciPy composition,
+numpy-quaternion's exp/log and the matrix exponential."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import quaternion as npq  # numpy-quaternion: an independent implementation
+import scipy.linalg
+from helpers import random_unit
+from scipy.spatial.transform import Rotation
+
+import jaxquat as jq
+
+ONE, I, J, K = np.eye(4)
+
+
+@pytest.fixture(scope="module")
+def general():
+    """Non-unit quaternions (two sets of 1000)."""
+    rng = np.random.default_rng(21)
+    return rng.normal(size=(1000, 4)), rng.normal(size=(1000, 4))
+
+
+def test_hamilton_table():
+    mul = lambda p, q: np.asarray(jq.multiply(p, q))
+    for unit in (I, J, K):
+        np.testing.assert_array_equal(mul(unit, unit), -ONE)
+    np.testing.assert_array_equal(mul(mul(I, J), K), -ONE)  # ijk = −1
+    np.testing.assert_array_equal(mul(I, J), K)
+    np.testing.assert_array_equal(mul(J, I), -K)
+    np.testing.assert_array_equal(mul(J, K), I)
+    np.testing.assert_array_equal(mul(K, J), -I)
+    np.testing.assert_array_equal(mul(K, I), J)
+    np.testing.assert_array_equal(mul(I, K), -J)
+    np.testing.assert_array_equal(mul(ONE, I), I)
+
+
+def test_multiply_matches_numpy_quaternion_and_scipy(general):
+    p, q = general
+    expected = npq.as_float_array(npq.from_float_array(p) * npq.from_float_array(q))
+    np.testing.assert_allclose(jq.multiply(p, q), expected, rtol=0, atol=1e-13)
+    u, v = np.asarray(random_unit(jax.random.key(1), (1000,))), np.asarray(random_unit(jax.random.key(2), (1000,)))
+    composed = Rotation.from_quat(v, scalar_first=True) * Rotation.from_quat(u, scalar_first=True)
+    np.testing.assert_allclose(
+        jq.to_matrix(jq.multiply(v, u)), composed.as_matrix(), rtol=0, atol=1e-12
+    )  # multiply(q2, q1) applies q1 first
+
+
+def test_algebraic_identities(general):
+    p, q = general
+    r = np.roll(p, 1, axis=0)
+    np.testing.assert_allclose(
+        jq.multiply(jq.multiply(p, q), r), jq.multiply(p, jq.multiply(q, r)), rtol=0, atol=1e-12
+    )
+    np.testing.assert_allclose(jq.norm(jq.multiply(p, q)), jq.norm(p) * jq.norm(q), rtol=1e-14)
+    np.testing.assert_allclose(
+        jq.conjugate(jq.multiply(p, q)), jq.multiply(jq.conjugate(q), jq.conjugate(p)), atol=1e-13
+    )
+    np.testing.assert_allclose(jq.multiply(p, jq.inverse(p)), np.tile(ONE, (1000, 1)), atol=1e-14)
+    np.testing.assert_allclose(jq.multiply(jq.inverse(p), p), np.tile(ONE, (1000, 1)), atol=1e-14)
+    # The seed's dot product: commutative, w₁w₂ + x₁x₂ + y₁y₂ + z₁z₂; |q|² = q·q = w(q q*).
+    np.testing.assert_allclose(jq.dot(p, q), np.sum(p * q, -1), rtol=1e-15)
+    np.testing.assert_array_equal(jq.dot(p, q), jq.dot(q, p))
+    np.testing.assert_allclose(jq.norm(p) ** 2, jq.multiply(p, jq.conjugate(p))[:, 0], rtol=1e-14)
+    np.testing.assert_allclose(jq.norm(jq.normalize(p)), 1.0, atol=1e-15)
+    np.testing.assert_array_equal(jq.conjugate(p), p * [1, -1, -1, -1])
+    np.testing.assert_array_equal(jq.from_vector(p[:, 1:]), np.concatenate([np.zeros((1000, 1)), p[:, 1:]], 1))
+    np.testing.assert_array_equal(jq.vector_part(p), p[:, 1:])
+
+
+def test_exp_and_log_match_numpy_quaternion_and_expm(general):
+    p, _ = general
+    expected = npq.as_float_array(np.exp(npq.from_float_array(p)))
+    np.testing.assert_allclose(jq.exp(p), expected, rtol=1e-13, atol=1e-13)
+    expected = npq.as_float_array(np.log(npq.from_float_array(p)))
+    np.testing.assert_allclose(jq.log(p), expected, rtol=1e-13, atol=1e-13)
+    # exp via the matrix exponential of the left-multiplication matrix L(q): exp(q) = expm(L(q)) e₀.
+    left = np.asarray(jax.vmap(jax.jacfwd(lambda r, q: jq.multiply(q, r)), in_axes=(None, 0))(ONE, p[:50]))
+    via_expm = np.stack([scipy.linalg.expm(m)[:, 0] for m in left])
+    np.testing.assert_allclose(jq.exp(p[:50]), via_expm, rtol=1e-12, atol=1e-13)
+    # Inverse pair on the principal branch.
+    np.testing.assert_allclose(jq.exp(jq.log(p)), p, rtol=0, atol=1e-13)
+    v = p.copy()
+    v[:, 1:] *= (3.0 / np.linalg.norm(v[:, 1:], axis=-1, keepdims=True)) * np.random.default_rng(0).uniform(size=(1000, 1))
+    np.testing.assert_allclose(jq.log(jq.exp(v)), v, rtol=0, atol=1e-12)  # |vec| < π
+
+
+def test_exp_log_at_and_near_the_singular_points():
+    np.testing.assert_array_equal(jq.exp(jnp.zeros(4)), ONE)
+    np.testing.assert_allclose(jq.exp(np.array([0.5, 0, 0, 0])), np.exp(0.5) * ONE, rtol=1e-15)
+    np.testing.assert_array_equal(jq.log(ONE), np.zeros(4))
+    np.testing.assert_array_equal(jq.log(-ONE), np.zeros(4))  # documented: undefined axis → 0
+    np.testing.assert_allclose(jq.log(2.0 * ONE), [np.log(2.0), 0, 0, 0], rtol=1e-15)
+    for eps in [1e-12, 1e-6, 1e-3]:
+        v = eps * np.array([0.6, 0.0, -0.8])
+        np.testing.assert_allclose(jq.exp(np.concatenate([[0.0], v])), np.concatenate([[np.cos(eps)], np.sin(eps) * v / eps]), rtol=1e-15, atol=1e-20)
+        q = np.concatenate([[np.cos(eps)], np.sin(eps) * v / eps])
+        np.testing.assert_allclose(jq.log(q)[1:], v, rtol=1e-13)
+
+    @jax.jit
+    def derivatives(w):
+        return jax.jacfwd(jq.exp)(jnp.array([w, 0.0, 0.0, 0.0])), jax.jacrev(jq.log)(jnp.array([w, 0.0, 0.0, 0.0]))
+
+    with jax.debug_nans(True):
+        d_exp, d_log = derivatives(0.3)
+    # At v = 0: d exp = e^w · I₄ (w-row e^w, vector block e^w I₃); d log vector block = I₃ / w.
+    np.testing.assert_allclose(d_exp, np.exp(0.3) * np.eye(4), rtol=1e-15)
+    np.testing.assert_allclose(d_log, np.diag([1 / 0.3, 1 / 0.3, 1 / 0.3, 1 / 0.3]), rtol=1e-15)
+
+
+def test_identity_and_broadcasting():
+    np.testing.assert_array_equal(jq.identity(), ONE)
+    p = np.asarray(random_unit(jax.random.key(3), (3, 1, 2)))
+    q = np.asarray(random_unit(jax.random.key(4), (2,)))
+    out = jq.multiply(p, q)
+    assert out.shape == (3, 1, 2, 4)
+    np.testing.assert_allclose(out[2, 0, 1], jq.multiply(p[2, 0, 1], q[1]), rtol=1e-15)
+    assert jq.multiply(p.astype(np.float32), q.astype(np.float32)).dtype == jnp.float32
+    # Integers are promoted to the default float.
+    assert jq.multiply([1, 2, 3, 4], [4, 3, 2, 1]).dtype == jnp.float64
+
+
+@pytest.mark.parametrize(
+    "call, name",
+    [
+        (lambda: jq.multiply(np.zeros(3), ONE), "p"),
+        (lambda: jq.multiply(ONE, np.zeros((2, 5))), "q"),
+        (lambda: jq.conjugate(np.zeros(3)), "q"),
+        (lambda: jq.norm(np.zeros(())), "q"),
+        (lambda: jq.dot(ONE, np.zeros(2)), "q"),
+        (lambda: jq.from_vector(np.zeros(4)), "v"),
+        (lambda: jq.exp(np.zeros(3)), "q"),
+        (lambda: jq.log(np.zeros(3)), "q"),
+    ],
+)
+def test_wrong_trailing_dimension_raises(call, name):
+    with pytest.raises(ValueError, match=rf"`{name}` must have shape \(\.\.\., [34]\); got shape"):
+        call()
+
+
+def test_incompatible_batch_shapes_raise():
+    with pytest.raises(ValueError, match=r"leading \(batch\) shapes \(3,\), \(2,\) do not broadcast"):
+        jq.multiply(np.zeros((3, 4)), np.zeros((2, 4)))
