@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from helpers import assert_quat_close, central_jacobian, quat_distance, random_unit
+from jax.test_util import check_grads
 from scipy import special
 
 import jaxquat as jq
@@ -896,3 +897,79 @@ def test_rigid_body_vector_field_with_lie_group_solvers(frame, solver):
         w_end = jq.rotate(w_end, jq.conjugate(q_end))
     assert quat_distance(q_end, q_ref[0]) < 1e-8
     np.testing.assert_allclose(w_end, w_ref[0], atol=1e-8)
+
+
+# --------------------------------------------------------------------------------------------------
+# Transformations of the point-mass and Euler-equation functions: jit == eager, vmap == loop,
+# forward == reverse == finite differences.
+
+
+def _spd(key):
+    a = jax.random.normal(key, (3, 3))
+    return a @ a.T + 2.0 * jnp.eye(3)
+
+
+def _symmetrized(function, index):
+    """`function` with its argument `index` symmetrised, so that finite differences in arbitrary
+    directions stay symmetric (a concrete non-symmetric inertia is rejected)."""
+
+    def wrapped(*args):
+        args = list(args)
+        args[index] = 0.5 * (args[index] + jnp.swapaxes(args[index], -1, -2))
+        return function(*args)
+
+    return wrapped
+
+
+@pytest.mark.parametrize(
+    "function, make_args",
+    [
+        (jq.center_of_mass, lambda k: (jnp.array([1.0, 2.0, 0.5]), jax.random.normal(k, (3, 3)))),
+        (jq.inertia_tensor, lambda k: (jnp.array([1.0, 2.0, 0.5]), jax.random.normal(k, (3, 3)))),
+        (
+            jq.angular_momentum,
+            lambda k: (jnp.array([1.0, 2.0, 0.5]), *jax.random.normal(k, (2, 3, 3))),
+        ),
+        (
+            _symmetrized(jq.euler_equations, 1),
+            lambda k: (jax.random.normal(k, (3,)), _spd(k), jnp.ones(3)),
+        ),
+        (jq.euler_equations, lambda k: (jax.random.normal(k, (3,)), jnp.array([1.0, 2.0, 3.0]))),
+        (_symmetrized(jq.kinetic_energy, 1), lambda k: (jax.random.normal(k, (3,)), _spd(k))),
+        (_symmetrized(lambda inertia: jq.principal_axes(inertia)[0], 0), lambda k: (_spd(k),)),
+    ],
+)
+def test_transformations(function, make_args, getkey):
+    keys = jax.random.split(getkey(), 3)
+    batches = [make_args(k) for k in keys]
+    eager = [function(*args) for args in batches]
+    np.testing.assert_allclose(jax.jit(function)(*batches[0]), eager[0], rtol=1e-13, atol=1e-14)
+    stacked = [jnp.stack(parts) for parts in zip(*batches, strict=True)]
+    np.testing.assert_allclose(
+        jax.vmap(function)(*stacked), jnp.stack(eager), rtol=1e-13, atol=1e-14
+    )
+    check_grads(jax.jit(function), batches[0], order=1, modes=("fwd", "rev"), eps=1e-6)
+
+
+# --------------------------------------------------------------------------------------------------
+# The notebook (its cells assert the flip period, the conservation and the half turn of the cat)
+
+
+def test_rigid_bodies_notebook_runs():
+    import pathlib
+
+    import nbformat
+    from nbclient import NotebookClient
+
+    path = pathlib.Path(__file__).resolve().parent.parent / "notebooks" / "03_rigid_bodies.ipynb"
+    notebook = nbformat.read(path, as_version=4)
+    client = NotebookClient(
+        notebook,
+        timeout=600,
+        kernel_name="python3",
+        resources={"metadata": {"path": str(path.parent)}},
+    )
+    client.execute()
+    outputs = [o for cell in notebook.cells for o in cell.get("outputs", [])]
+    assert not [o for o in outputs if o.get("output_type") == "error"]
+    assert sum("image/png" in o.get("data", {}) for o in outputs) == 3
