@@ -44,21 +44,26 @@ _METHODS = ("euler", "midpoint", "cf4", "naive", "rk4")
 # Point masses
 
 
-def _check_point_masses(masses: ArrayLike, positions: ArrayLike, name: str = "positions"):
+def _check_positive_masses(masses: Array) -> None:
+    """Raise a `ValueError` for non-positive masses (only when they are concrete)."""
+    if not is_tracer(masses) and np.any(np.asarray(masses) <= 0):
+        raise ValueError("`masses` must be positive.")
+
+
+def _check_point_masses(masses: ArrayLike, positions: ArrayLike):
     """Validate `masses (..., n)` against `positions (..., n, 3)` and broadcast their batch axes."""
     masses = as_float_array(masses, "masses")
-    positions = check_trailing(positions, 3, name)
+    positions = check_trailing(positions, 3, "positions")
     if positions.ndim < 2:
         raise ValueError(
-            f"`{name}` must have shape (..., n, 3); got shape {tuple(positions.shape)}."
+            f"`positions` must have shape (..., n, 3); got shape {tuple(positions.shape)}."
         )
     if masses.ndim < 1 or masses.shape[-1] != positions.shape[-2]:
         raise ValueError(
-            f"`masses` must have shape (..., n) with n = {positions.shape[-2]} to match `{name}` of "
-            f"shape {tuple(positions.shape)}; got shape {tuple(masses.shape)}."
+            f"`masses` must have shape (..., n) with n = {positions.shape[-2]} to match `positions` "
+            f"of shape {tuple(positions.shape)}; got shape {tuple(masses.shape)}."
         )
-    if not is_tracer(masses) and np.any(np.asarray(masses) <= 0):
-        raise ValueError("`masses` must be positive.")
+    _check_positive_masses(masses)
     masses, positions = broadcast_batch((masses, 1), (positions, 2))
     return masses, positions
 
@@ -398,17 +403,9 @@ class _RigidBodyVectorField(eqx.Module):
 
     def __call__(self, t, y, args):
         q, omega = y
-        if self.frame == "body":
-            omega_body, tau = omega, None
-            if self.torque is not None:
-                tau = self.torque(t, q, omega)
-        else:
-            omega_body = rotate(omega, conjugate(q))
-            tau = None
-            if self.torque is not None:
-                tau = rotate(self.torque(t, q, omega), conjugate(q))
-        inverse = _inverse_inertia(self.inertia)
-        omega_dot_body = _euler_rhs(omega_body, self.inertia, inverse, tau)
+        omega_body = omega if self.frame == "body" else rotate(omega, conjugate(q))
+        field = _rigid_body_field(self.inertia, self.torque, self.frame)
+        _, omega_dot_body = field(t, q, omega_body)
         if self.frame == "body":
             return rate(q, omega, frame="body"), omega_dot_body
         # d/dt (R ω_b) = R ω̇_b + ω × ω = R ω̇_b.
@@ -539,8 +536,7 @@ def simulate_deformable_body(
             f"`positions(t)` must return shape (n, 3) = ({masses.shape[0]}, 3) to match `masses`; "
             f"got shape {shape}."
         )
-    if not is_tracer(masses) and np.any(np.asarray(masses) <= 0):
-        raise ValueError("`masses` must be positive.")
+    _check_positive_masses(masses)
     masses, q0 = masses.astype(dtype), q0.astype(dtype)
     if angular_momentum is None:
         momentum_world = jnp.zeros((3,), dtype)
