@@ -949,27 +949,3 @@ def test_transformations(function, make_args, getkey):
         jax.vmap(function)(*stacked), jnp.stack(eager), rtol=1e-13, atol=1e-14
     )
     check_grads(jax.jit(function), batches[0], order=1, modes=("fwd", "rev"), eps=1e-6)
-
-
-# --------------------------------------------------------------------------------------------------
-# The notebook (its cells assert the flip period, the conservation and the half turn of the cat)
-
-
-def test_rigid_bodies_notebook_runs():
-    import pathlib
-
-    import nbformat
-    from nbclient import NotebookClient
-
-    path = pathlib.Path(__file__).resolve().parent.parent / "notebooks" / "03_rigid_bodies.ipynb"
-    notebook = nbformat.read(path, as_version=4)
-    client = NotebookClient(
-        notebook,
-        timeout=600,
-        kernel_name="python3",
-        resources={"metadata": {"path": str(path.parent)}},
-    )
-    client.execute()
-    outputs = [o for cell in notebook.cells for o in cell.get("outputs", [])]
-    assert not [o for o in outputs if o.get("output_type") == "error"]
-    assert sum("image/png" in o.get("data", {}) for o in outputs) == 3
