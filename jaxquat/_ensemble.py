@@ -58,7 +58,10 @@ class EnsembleResult(eqx.Module):
     """The outcome of `simulate_ensemble`.
 
     Arrays keep the ensemble's batch shape `batch` (the broadcast leading shape of `q0` and `omega`) and
-    stay on the devices, sharded over bodies (`result.sharding`). Padding bodies are already dropped.
+    stay on the devices, sharded over bodies (`result.sharding`) when the number of bodies is a multiple
+    of the device count. Otherwise the padding bodies are dropped at the end and JAX, which needs even
+    shards, lays the (unpadded) results out replicated; choose a multiple of the device count to keep
+    them sharded.
 
     **Fields:**
 
@@ -555,7 +558,7 @@ def simulate_ensemble(
     """
     started = time.perf_counter()
     dynamic = inertia is not None
-    frame = check_frame("body" if dynamic and frame is None else frame or "world")
+    frame = check_frame(("body" if dynamic else "world") if frame is None else frame)
     num_steps = _check_positive_int(num_steps, "num_steps", allow_zero=True)
     if save_every is not None:
         save_every = _check_positive_int(save_every, "save_every")
