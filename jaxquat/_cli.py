@@ -321,20 +321,28 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         config["seed"], config["bodies"], config["omega_mean"], config["omega_scale"], dtype
     )
     inertia = None if config["inertia"] is None else jnp.asarray(config["inertia"], dtype)
-    result = simulate_ensemble(
-        q0,
-        omega,
-        config["dt"],
-        config["steps"],
-        inertia=inertia,
-        frame=config["frame"],
-        method=config["method"],
-        save_every=config["save_every"],
-        statistics=config["statistics"],
-        chunk_size=config["chunk_size"],
-        path=config["output"],
-        progress=not args.no_progress,
-    )
+    try:
+        result = simulate_ensemble(
+            q0,
+            omega,
+            config["dt"],
+            config["steps"],
+            inertia=inertia,
+            frame=config["frame"],
+            method=config["method"],
+            save_every=config["save_every"],
+            statistics=config["statistics"],
+            chunk_size=config["chunk_size"],
+            path=config["output"],
+            progress=not args.no_progress,
+        )
+    except KeyboardInterrupt:
+        print(
+            f"{_PROG}: interrupted; the completed chunks are in {config['output']}/ "
+            "(jaxquat.load_ensemble reads them)",
+            file=sys.stderr,
+        )
+        return 130
     kind = "rigid bodies" if inertia is not None else "kinematic bodies"
     method = config["method"] or ("cf4" if inertia is not None else "euler")
     rows = [

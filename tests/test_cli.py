@@ -266,3 +266,14 @@ def test_python_m_jaxquat_bad_file_in_a_real_process(tmp_path):
 def test_unknown_global_option(argv, capsys):
     status, _, err = _run(argv, capsys)
     _assert_one_line_error(status, err, "unrecognized arguments")
+
+
+def test_interrupted_simulate_says_where_the_chunks_are(monkeypatch, tmp_path, capsys):
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("jaxquat._ensemble.simulate_ensemble", interrupted)
+    status, out, err = _run(
+        ["simulate", "--bodies", "3", "--steps", "2", "--output", tmp_path / "run"], capsys
+    )
+    assert status == 130 and err.count("\n") == 1 and "completed chunks" in err and "run/" in err
