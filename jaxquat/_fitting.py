@@ -1,4 +1,4 @@
-"""Fitting angular velocity (and a torque-free body's inertia) to observed orientations.
+r"""Fitting angular velocity (and a torque-free body's inertia) to observed orientations.
 
 The fits are nonlinear least squares solved by `optimistix` (Levenberg–Marquardt by default) through
 the forward models of the lower layers: the closed-form exponential for constant ω (`step`), the
@@ -108,12 +108,14 @@ def _perturb(reference: Array, delta: Array, frame: str) -> Array:
     return _act(reference, from_rotvec(delta), frame)
 
 
-def _default_solver(dtype, rtol, atol) -> optx.AbstractLeastSquaresSolver:
-    if rtol is None:
-        rtol = 1e-10 if jnp.dtype(dtype) == jnp.float64 else 1e-5
-    if atol is None:
-        atol = 1e-10 if jnp.dtype(dtype) == jnp.float64 else 1e-5
-    return optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+def _default_solver(dtype) -> optx.AbstractLeastSquaresSolver:
+    tol = 1e-6 if jnp.dtype(dtype) == jnp.float64 else 1e-4
+    return optx.LevenbergMarquardt(rtol=tol, atol=tol)
+
+
+def _polish_solver(dtype) -> optx.AbstractLeastSquaresSolver:
+    tol = 1e-12 if jnp.dtype(dtype) == jnp.float64 else 1e-6
+    return optx.GaussNewton(rtol=tol, atol=tol)
 
 
 def _check_observations(times: ArrayLike, qs: ArrayLike, weights: ArrayLike | None):
@@ -170,10 +172,43 @@ def _interval_rates(qs: Array, tau: Array, frame: str) -> tuple[Array, Array]:
     return angular_velocity(qs, dtau, frame=frame), dtau
 
 
-def _solve(residual_fn, y0, args, solver, max_steps: int):
-    solution = optx.least_squares(residual_fn, solver, y0, args, max_steps=max_steps, throw=False)
-    converged = solution.result == optx.RESULTS.successful
-    return solution.value, solution.stats["num_steps"], converged
+def _solve(residual_fn, y0, args, solver, max_steps: int, polish: int):
+    """Levenberg–Marquardt (or `solver`), then up to `polish` Gauss–Newton steps.
+
+    Returns `(parameters, steps, converged)`. Near the optimum of a problem with noise the loss no
+    longer resolves the remaining step (its round-off is ~ε·loss), so a damped method's acceptance
+    test starts rejecting steps at ~1e-10 from the optimum and ends on the trust-region radius.
+    Gauss–Newton does not test the loss: from the Levenberg–Marquardt solution it reaches the
+    stationary point to round-off in one or two steps, on exact and noisy data alike (its result is
+    used only if it meets its own tolerance).
+
+    The parameters are held in the promotion of their dtype with JAX's default float (float64 for
+    float32 data when x64 is on: optimistix creates its trust-region radius in the default dtype, which
+    would promote half of the damped linear system) and cast back to the data's dtype inside the
+    residual, so the model itself runs in the data's dtype; the residuals are promoted on the way out.
+    """
+    leaves = jax.tree_util.tree_leaves(y0)
+    data_dtype = leaves[0].dtype
+    solver_dtype = jnp.promote_types(data_dtype, jnp.asarray(1.0).dtype)
+
+    def cast(tree, dtype):
+        return jax.tree_util.tree_map(lambda leaf: leaf.astype(dtype), tree)
+
+    def residuals(params, args):
+        return residual_fn(cast(params, data_dtype), args).astype(solver_dtype)
+
+    def run(solver, y, steps):
+        solution = optx.least_squares(residuals, solver, y, args, max_steps=steps, throw=False)
+        ok = solution.result == optx.RESULTS.successful
+        return solution.value, solution.stats["num_steps"], ok
+
+    y, num_steps, converged = run(solver, cast(y0, solver_dtype), max_steps)
+    if polish:
+        polished, polish_steps, polish_ok = run(_polish_solver(data_dtype), y, polish)
+        y = jax.tree_util.tree_map(lambda a, b: jnp.where(polish_ok, a, b), polished, y)
+        num_steps = num_steps + polish_steps
+        converged = converged | polish_ok
+    return cast(y, data_dtype), num_steps, converged
 
 
 # --------------------------------------------------------------------------------------------------
@@ -327,9 +362,8 @@ def fit_angular_velocity(
     omega0: ArrayLike | None = None,
     substeps: int = 2,
     solver: optx.AbstractLeastSquaresSolver | None = None,
-    rtol: float | None = None,
-    atol: float | None = None,
     max_steps: int = 256,
+    polish: int = 8,
 ) -> AngularVelocityFit:
     r"""Fit an angular velocity to observed orientations by nonlinear least squares.
 
@@ -367,9 +401,12 @@ def fit_angular_velocity(
     - `weights`: optional non-negative per-observation weights `(T,)` (e.g. 1/σₖ²).
     - `omega0`: optional starting guess: `(3,)`, or knot values `(K, 3)` for the time-varying models.
     - `substeps`: Magnus-4 steps per observation interval (time-varying models).
-    - `solver`: an `optimistix` least-squares solver; default `optimistix.LevenbergMarquardt(rtol,
-      atol)` with `rtol = atol = 1e-10` (float64) or `1e-5` (float32).
+    - `solver`: an `optimistix` least-squares solver; default
+      `optimistix.LevenbergMarquardt(rtol=1e-6, atol=1e-6)` (1e-4 in float32).
     - `max_steps`: the solver's step limit; reaching it gives `converged=False`, not an error.
+    - `polish`: at most this many `optimistix.GaussNewton` steps (tolerance 1e-12; 1e-6 in float32)
+      after `solver`, taken if they converge: they reach the optimum to round-off, where the damped
+      solver's loss-based acceptance test stalls ~1e-10 short of it on noisy data. 0 switches it off.
 
     **Returns:** an `AngularVelocityFit` (a PyTree) with `.omega` (array `(3,)` or an
     `AngularVelocityCurve`), `.q0`, `.residual_angles`, `.loss`, `.num_steps`, `.converged`.
@@ -408,14 +445,17 @@ def fit_angular_velocity(
     else:
         knots = _check_knots(knots, times, model, num_obs)
         value_shapes = [(3,), (knots.shape[0], 3)]
-    if omega0 is not None:
+    if omega0 is None:
+        omega0 = _start(times, observed, knots, model=model, frame=frame)
+    else:
         omega0 = as_float_array(omega0, "omega0").astype(dtype)
         if omega0.shape not in value_shapes:
             expected = " or ".join(str(s) for s in value_shapes)
             raise ValueError(f"`omega0` must have shape {expected}; got {tuple(omega0.shape)}.")
+        omega0 = jnp.broadcast_to(omega0, value_shapes[-1])
     substeps = _check_substeps(substeps)
     if solver is None:
-        solver = _default_solver(dtype, rtol, atol)
+        solver = _default_solver(dtype)
     return _fit(
         times,
         observed,
@@ -427,57 +467,78 @@ def fit_angular_velocity(
         substeps=substeps,
         solver=solver,
         max_steps=int(max_steps),
+        polish=int(polish),
     )
 
 
 @eqx.filter_jit
+def _start(times, observed, knots, *, model, frame):
+    """The starting ω (constant model) or knot values from log-differences of neighbouring observations.
+
+    Jitted on its own, so that fits with and without a user's `omega0` share one compiled solver.
+    """
+    dtype = observed.dtype
+    tau = (times - times[0]).astype(dtype)
+    rates, dtau = _interval_rates(observed, tau, frame)
+    if model == "constant":
+        return jnp.sum(rates * dtau[:, None], axis=0) / tau[-1]
+    # The curve is linear in its values: its basis functions are the curve through I_K.
+    midpoints = times[:-1] + 0.5 * (times[1:] - times[:-1])
+    basis = AngularVelocityCurve.through(knots, jnp.eye(knots.shape[0], dtype=dtype), model)
+    return jnp.linalg.lstsq(basis(midpoints), rates)[0]
+
+
+def _statistics(fitted, observed, sqrt_weights, frame):
+    """(residual angles, loss) of a fit."""
+    residuals = sqrt_weights[:, None] * _orientation_residuals(fitted, observed, frame)
+    return angle_between(fitted, observed), 0.5 * jnp.sum(residuals * residuals)
+
+
+@eqx.filter_jit
 def _fit(
-    times, observed, sqrt_weights, knots, omega0, *, model, frame, substeps, solver, max_steps
+    times,
+    observed,
+    sqrt_weights,
+    knots,
+    omega0,
+    *,
+    model,
+    frame,
+    substeps,
+    solver,
+    max_steps,
+    polish,
 ):
     dtype = observed.dtype
     # Relative times: subtract the origin in the dtype of `times` (float64 for float32 data, say).
     tau = (times - times[0]).astype(dtype)
     reference = observed[0]
     delta0 = jnp.zeros((3,), dtype)
-
     if model == "constant":
-        if omega0 is None:
-            rates, dtau = _interval_rates(observed, tau, frame)
-            omega0 = jnp.sum(rates * dtau[:, None], axis=0) / tau[-1]
         args = (tau, observed, sqrt_weights, reference)
         residual_fn = functools.partial(_constant_residuals, frame=frame)
         params, num_steps, converged = _solve(
-            residual_fn, (delta0, omega0), args, solver, max_steps
+            residual_fn, (delta0, omega0), args, solver, max_steps, polish
         )
         q0, fitted = _constant_model(params, tau, reference, frame)
         omega = params[1]
     else:
-        num_knots = knots.shape[0]
-        if omega0 is None:
-            rates, dtau = _interval_rates(observed, tau, frame)
-            midpoints = times[:-1] + 0.5 * (times[1:] - times[:-1])
-            # The curve is linear in its values: its basis functions are the curve through I_K.
-            basis = AngularVelocityCurve.through(knots, jnp.eye(num_knots, dtype=dtype), model)
-            values0 = jnp.linalg.lstsq(basis(midpoints), rates)[0]
-        else:
-            values0 = jnp.broadcast_to(omega0, (num_knots, 3))
         args = (times, observed, sqrt_weights, reference, knots)
         residual_fn = functools.partial(
             _curve_residuals, frame=frame, kind=model, substeps=substeps
         )
         params, num_steps, converged = _solve(
-            residual_fn, (delta0, values0), args, solver, max_steps
+            residual_fn, (delta0, omega0), args, solver, max_steps, polish
         )
         q0, omega, fitted = _curve_model(params, times, reference, knots, frame, model, substeps)
-
-    residuals = sqrt_weights[:, None] * _orientation_residuals(fitted, observed, frame)
+    residual_angles, loss = _statistics(fitted, observed, sqrt_weights, frame)
     return AngularVelocityFit(
         omega=omega,
         q0=q0,
         t0=times[0],
         fitted=fitted,
-        residual_angles=angle_between(fitted, observed),
-        loss=0.5 * jnp.sum(residuals * residuals),
+        residual_angles=residual_angles,
+        loss=loss,
         num_steps=num_steps,
         converged=converged,
         frame=frame,
@@ -578,9 +639,8 @@ def fit_rigid_body(
     method: str = "cf4",
     substeps: int = 4,
     solver: optx.AbstractLeastSquaresSolver | None = None,
-    rtol: float | None = None,
-    atol: float | None = None,
     max_steps: int = 256,
+    polish: int = 8,
 ) -> RigidBodyFit:
     r"""Fit the inertia ratios and initial angular velocity of a torque-free rigid body to orientations.
 
@@ -602,7 +662,7 @@ def fit_rigid_body(
     - `inertia0`: optional starting principal moments `(3,)` (any scale). `omega0`: optional starting
       body-frame ω at `times[0]`, `(3,)`.
     - `method`, `substeps`: the integrator (see `simulate_rigid_body`) and its steps per interval.
-    - `solver`, `rtol`, `atol`, `max_steps`: as in `fit_angular_velocity`.
+    - `solver`, `max_steps`, `polish`: as in `fit_angular_velocity`.
 
     **Returns:** a `RigidBodyFit`: `.inertia` (I₁ = 1), `.inertia_ratios`, `.omega0`, `.q0`,
     `.residual_angles`, `.loss`, `.num_steps`, `.converged`.
@@ -622,10 +682,14 @@ def fit_rigid_body(
     inertia0, omega0 = starts
     if inertia0 is not None and not is_tracer(inertia0) and np.any(np.asarray(inertia0) <= 0):
         raise ValueError(f"`inertia0` must be positive; got {np.asarray(inertia0)}.")
+    if inertia0 is None or omega0 is None:
+        inertia_start, omega_start = _rigid_body_start(times, observed)
+        inertia0 = inertia_start if inertia0 is None else inertia0
+        omega0 = omega_start if omega0 is None else omega0
     method = check_choice(method, ("cf4", "midpoint", "euler", "rk4", "naive"), "method")
     substeps = _check_substeps(substeps)
     if solver is None:
-        solver = _default_solver(dtype, rtol, atol)
+        solver = _default_solver(dtype)
     return _fit_rigid_body(
         times,
         observed,
@@ -636,40 +700,41 @@ def fit_rigid_body(
         substeps=substeps,
         solver=solver,
         max_steps=int(max_steps),
+        polish=int(polish),
     )
 
 
 @eqx.filter_jit
+def _rigid_body_start(times, observed):
+    """Starting (principal moments, body ω at t0) from log-differences and the equation error."""
+    tau = (times - times[0]).astype(observed.dtype)
+    rates, dtau = _interval_rates(observed, tau, "body")
+    midpoints = tau[:-1] + 0.5 * dtau
+    # Extrapolate the first two interval rates (held at their midpoints) back to t0.
+    slope = (rates[1] - rates[0]) / (midpoints[1] - midpoints[0])
+    return _equation_error_inertia(rates, midpoints), rates[0] - midpoints[0] * slope
+
+
+@eqx.filter_jit
 def _fit_rigid_body(
-    times, observed, sqrt_weights, inertia0, omega0, *, method, substeps, solver, max_steps
+    times, observed, sqrt_weights, inertia0, omega0, *, method, substeps, solver, max_steps, polish
 ):
-    dtype = observed.dtype
-    tau = (times - times[0]).astype(dtype)
     reference = observed[0]
-    if inertia0 is None or omega0 is None:
-        rates, dtau = _interval_rates(observed, tau, "body")
-        midpoints = tau[:-1] + 0.5 * dtau
-        if inertia0 is None:
-            inertia0 = _equation_error_inertia(rates, midpoints)
-        if omega0 is None:
-            # Extrapolate the first two interval rates (held at their midpoints) back to t0.
-            slope = (rates[1] - rates[0]) / (midpoints[1] - midpoints[0])
-            omega0 = rates[0] - midpoints[0] * slope
     log_ratios0 = jnp.log(inertia0[1:] / inertia0[0])
-    params0 = (jnp.zeros((3,), dtype), log_ratios0, omega0)
+    params0 = (jnp.zeros((3,), observed.dtype), log_ratios0, omega0)
     args = (times, observed, sqrt_weights, reference)
     residual_fn = functools.partial(_rigid_body_residuals, method=method, substeps=substeps)
-    params, num_steps, converged = _solve(residual_fn, params0, args, solver, max_steps)
+    params, num_steps, converged = _solve(residual_fn, params0, args, solver, max_steps, polish)
     q0, inertia, fitted = _rigid_body_model(params, times, reference, method, substeps)
-    residuals = sqrt_weights[:, None] * _orientation_residuals(fitted, observed, "body")
+    residual_angles, loss = _statistics(fitted, observed, sqrt_weights, "body")
     return RigidBodyFit(
         inertia=inertia,
         omega0=params[2],
         q0=q0,
         t0=times[0],
         fitted=fitted,
-        residual_angles=angle_between(fitted, observed),
-        loss=0.5 * jnp.sum(residuals * residuals),
+        residual_angles=residual_angles,
+        loss=loss,
         num_steps=num_steps,
         converged=converged,
     )

@@ -1,0 +1,485 @@
+"""Tests for `jaxquat._fitting`: angular velocity and torque-free rigid bodies fitted to orientations.
+
+Synthetic observations are generated independently of jaxquat's forward models (SciPy's `Rotation`
+and `solve_ivp`), so a test compares the fit against the truth, not the library against itself.
+
+Noise model: r_k = exp(n_k) ⊗ q(t_k), n_k ~ N(0, σ² I₃) (isotropic world-frame angle noise).
+
+**Cramér–Rao bound for constant ω.** Linearising the world-frame model
+q(t) = exp(ω τ) ⊗ exp(δ) ⊗ q₀ (τ = t − t₀) about the truth, the residual of observation k is
+ρ_k = R_k δ + τ_k J(ωτ_k) δω − n_k, with R_k the rotation by ωτ_k and J the left Jacobian of SO(3).
+
+- Along the rotation axis u: R_k u = J u = u, so ρ∥ = δ∥ + τ_k δω∥ − n∥: a straight-line fit,
+  Var(ω∥) = σ² / Σ(τ_k − τ̄)² ≈ 12σ² / (N T²) for N samples spread uniformly over a span T.
+- Across the axis (the plane ⊥ u as ℂ, φ_k = |ω|τ_k): R = e^{iφ}, τJ = (e^{iφ} − 1)/(i|ω|), so
+  ρ⊥ = e^{iφ_k} b − a − n⊥ with a = δω⊥/(i|ω|), b = δ⊥ + a: a regression on {e^{iφ_k}, 1}, giving
+  Var(each component of ω⊥) = |ω|² σ² / (N (1 − |m|²)), m = mean_k e^{iφ_k}.
+
+So the ~12σ²/(NT²) per axis of a slowly turning body holds only along the axis once the body turns
+by more than about a radian: tilting the spin axis by ε changes the orientation by at most ~2ε
+however long one watches, and the cross-axis error stays at |ω|σ/√N.
+"""
+
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+from scipy.interpolate import CubicSpline
+from scipy.spatial.transform import Rotation
+
+import jaxquat
+from jaxquat._fitting import _orientation_residuals
+
+SIGMA = 1e-3
+
+
+# --------------------------------------------------------------------------------------------------
+# Synthetic data (independent of jaxquat's forward models)
+
+
+def _to_wxyz(rotation):
+    xyzw = rotation.as_quat()
+    return np.concatenate([xyzw[..., 3:], xyzw[..., :3]], axis=-1)
+
+
+def _from_wxyz(q):
+    q = np.asarray(q)
+    return Rotation.from_quat(np.concatenate([q[..., 1:], q[..., :1]], axis=-1))
+
+
+def _random_times(rng, num, span):
+    return np.sort(np.concatenate([[0.0, span], rng.uniform(0.0, span, num - 2)]))
+
+
+def _constant_truth(rng, times, omega, q0, frame="world"):
+    """Orientations exp(ω t) ⊗ q₀ (world) or q₀ ⊗ exp(ω t) (body) by SciPy."""
+    turn = Rotation.from_rotvec(np.outer(times, omega))
+    start = _from_wxyz(q0)
+    return _to_wxyz(turn * start if frame == "world" else start * turn)
+
+
+def _add_noise(rng, qs, sigma=SIGMA):
+    noise = Rotation.from_rotvec(sigma * rng.standard_normal(qs.shape[:-1] + (3,)))
+    return _to_wxyz(noise * _from_wxyz(qs))
+
+
+def _flip_signs(rng, qs):
+    signs = np.where(rng.random(qs.shape[:-1]) < 0.5, -1.0, 1.0)
+    return qs * signs[..., None]
+
+
+def _constant_crb(times, omega, sigma=SIGMA):
+    """The closed-form covariance of ω̂ (module docstring), shape (3, 3)."""
+    speed = np.linalg.norm(omega)
+    axis = omega / speed
+    tau = times - times[0]
+    along = sigma**2 / np.sum((tau - tau.mean()) ** 2)
+    mean_phase = np.abs(np.mean(np.exp(1j * speed * tau)))
+    across = speed**2 * sigma**2 / (len(times) * (1.0 - mean_phase**2))
+    outer = np.outer(axis, axis)
+    return along * outer + across * (np.eye(3) - outer)
+
+
+@pytest.fixture(scope="module")
+def constant_case():
+    rng = np.random.default_rng(20261122)
+    times = _random_times(rng, 200, 10.0)
+    omega = np.array([0.3, -0.5, 0.8])  # |ω| ≈ 0.99 rad/s: 9.9 rad (1.6 turns) over the span
+    q0 = _to_wxyz(Rotation.random(random_state=1))
+    exact = _constant_truth(rng, times, omega, q0)
+    noisy = _add_noise(rng, exact)
+    return dict(times=times, omega=omega, q0=q0, exact=exact, noisy=noisy, rng=rng)
+
+
+# --------------------------------------------------------------------------------------------------
+# The residual
+
+
+def test_residual_sign_invariant_smooth_and_exact_at_zero(getkey):
+    """ρ = 2 sgn(w(e)) vec(e): invariant under q → −q and r → −r, |ρ|² = 4(1 − ⟨q, r⟩²), and at zero
+    residual its Jacobian is the exact one (finite differences), the loss gradient 0."""
+    q = jaxquat.random(getkey(), (64,))
+    r = jaxquat.random(getkey(), (64,))
+    residuals = jax.jit(_orientation_residuals, static_argnames="frame")
+    dots = np.sum(np.asarray(q) * np.asarray(r), axis=-1)
+    theta = np.asarray(jax.jit(jaxquat.angle_between)(q, r))
+    for frame in ("world", "body"):
+        rho = np.asarray(residuals(q, r, frame=frame))
+        for a, b in ((-q, r), (q, -r), (-q, -r)):
+            np.testing.assert_allclose(residuals(a, b, frame=frame), rho, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(np.sum(rho**2, -1), 4 * (1 - dots**2), rtol=1e-12, atol=1e-14)
+        # |ρ| = 2 sin(θ/2) for the geodesic angle θ.
+        np.testing.assert_allclose(np.linalg.norm(rho, axis=-1), 2 * np.sin(theta / 2), rtol=1e-12)
+
+    # At zero residual, for both sheets of the observation: Jacobian w.r.t. a rotation vector φ applied
+    # to the model, exact (= identity for the world-frame error) and NaN-free; loss gradient 0.
+    def residual(phi, observed):
+        model = jaxquat.multiply(jaxquat.from_rotvec(phi), q[0])
+        return _orientation_residuals(model, observed, "world")
+
+    jacfwd = jax.jit(jax.jacfwd(residual))
+    jacrev = jax.jit(jax.jacrev(residual))
+    grad = jax.jit(jax.grad(lambda phi, observed: 0.5 * jnp.sum(residual(phi, observed) ** 2)))
+    value = jax.jit(residual)
+    zero = jnp.zeros(3)
+    step = 1e-6
+    for observed in (q[0], -q[0]):
+        jacobian = jacfwd(zero, observed)
+        np.testing.assert_allclose(jacobian, np.eye(3), atol=1e-15)
+        np.testing.assert_allclose(jacrev(zero, observed), jacobian, atol=1e-15)
+        gradient = grad(zero, observed)
+        assert (
+            np.all(np.isfinite(gradient)) and np.max(np.abs(gradient)) <= 1e-15
+        )  # 0 up to round-off
+        fd = np.stack(
+            [
+                (value(step * e, observed) - value(-step * e, observed)) / (2 * step)
+                for e in np.eye(3)
+            ],
+            axis=1,
+        )
+        np.testing.assert_allclose(fd, jacobian, atol=1e-9)
+
+
+# --------------------------------------------------------------------------------------------------
+# Constant angular velocity
+
+
+def test_constant_exact_data(frame="world"):
+    rng = np.random.default_rng(7)
+    times = _random_times(rng, 200, 10.0)
+    omega = np.array([-0.7, 0.4, 0.9])
+    q0 = _to_wxyz(Rotation.random(random_state=3))
+    qs = _flip_signs(rng, _constant_truth(rng, times, omega, q0, frame))
+    fit = jaxquat.fit_angular_velocity(times, qs, frame=frame)
+    error = float(np.max(np.abs(fit.omega - omega)))
+    print(
+        f"\nconstant ω, exact data, frame={frame}: |Δω|max = {error:.1e}, steps {int(fit.num_steps)}"
+    )
+    assert fit.converged
+    assert error <= 1e-10
+    assert np.min(np.abs([np.linalg.norm(fit.q0 - q0), np.linalg.norm(fit.q0 + q0)])) <= 1e-10
+    assert float(jnp.max(fit.residual_angles)) <= 1e-10
+
+
+def test_constant_noisy_meets_cramer_rao(constant_case):
+    """Acceptance 1: 200 observations, 1e-3 rad noise, 9.9 rad of rotation, no user guess."""
+    c = constant_case
+    fit = jaxquat.fit_angular_velocity(c["times"], c["noisy"])
+    error = float(np.linalg.norm(fit.omega - c["omega"]))
+    crb = _constant_crb(c["times"], c["omega"])
+    expected = float(np.sqrt(np.trace(crb)))
+
+    # The closed form agrees with the bound computed from the model's own Jacobian at the truth.
+    def residuals(params):
+        delta, omega = params
+        q0 = jaxquat.multiply(jaxquat.from_rotvec(delta), jnp.asarray(c["q0"]))
+        model = jaxquat.step(q0, omega, jnp.asarray(c["times"]))
+        return _orientation_residuals(model, jnp.asarray(c["exact"]), "world").reshape(-1)
+
+    jac = jnp.concatenate(
+        jax.jit(jax.jacfwd(residuals))((jnp.zeros(3), jnp.asarray(c["omega"]))), axis=1
+    )
+    numeric = SIGMA**2 * np.linalg.inv(np.asarray(jac.T @ jac))[3:, 3:]
+    np.testing.assert_allclose(crb, numeric, rtol=0.05, atol=0.05 * np.max(np.abs(numeric)))
+    tau = c["times"] - c["times"][0]
+    axis = c["omega"] / np.linalg.norm(c["omega"])
+    along = float(np.sqrt(axis @ crb @ axis))
+    rule = SIGMA * np.sqrt(12 / (len(tau) * tau[-1] ** 2))
+    print(
+        f"\nconstant ω, σ = {SIGMA}, N = {len(tau)}, T = {tau[-1]:.1f} s: |Δω| = {error:.2e} rad/s; "
+        f"Cramér–Rao RMS {expected:.2e} (along the axis {along:.2e}, 12σ²/(NT²) rule {rule:.2e}; "
+        f"across {np.sqrt((expected**2 - along**2) / 2):.2e} per component); "
+        f"{int(fit.num_steps)} steps"
+    )
+    assert fit.converged
+    assert int(fit.num_steps) <= 50
+    assert error <= 2e-4
+    assert error <= 3 * expected
+    assert abs(along / rule - 1) < 0.1
+    # Residual angles are the noise: RMS ≈ σ√3 less the 6 fitted degrees of freedom.
+    rms = float(np.sqrt(np.mean(np.asarray(fit.residual_angles) ** 2)))
+    assert abs(rms / (SIGMA * np.sqrt(3 * (1 - 6 / 600))) - 1) < 0.1
+
+
+def test_start_at_zero_falls_into_wrong_minimum(constant_case):
+    """Why the fit finds its own start: Levenberg–Marquardt from ω = 0 on 1.6 turns of data fails."""
+    c = constant_case
+    from_zero = jaxquat.fit_angular_velocity(c["times"], c["noisy"], omega0=np.zeros(3))
+    assert float(np.linalg.norm(from_zero.omega - c["omega"])) > 0.1
+    guided = jaxquat.fit_angular_velocity(c["times"], c["noisy"], omega0=0.9 * c["omega"])
+    assert float(np.linalg.norm(guided.omega - c["omega"])) < 2e-4
+
+
+def test_sign_flips_give_the_same_fit(constant_case):
+    """Acceptance 4: observations with random signs give the same answer."""
+    c = constant_case
+    flipped = _flip_signs(np.random.default_rng(11), c["noisy"])
+    assert np.any(np.sign(flipped[:, 0]) != np.sign(c["noisy"][:, 0]))
+    fit = jaxquat.fit_angular_velocity(c["times"], c["noisy"])
+    fit_flipped = jaxquat.fit_angular_velocity(c["times"], flipped)
+    np.testing.assert_allclose(fit_flipped.omega, fit.omega, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(fit_flipped.residual_angles, fit.residual_angles, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(fit_flipped.loss, fit.loss, rtol=1e-12)
+    q_distance = min(
+        np.linalg.norm(fit_flipped.q0 - fit.q0), np.linalg.norm(fit_flipped.q0 + fit.q0)
+    )
+    assert q_distance <= 1e-13
+
+
+def test_vmap_1000_bodies_equals_one_by_one_and_cramer_rao():
+    """Acceptance 5, and the bound checked statistically: for unbiased errors at the Cramér–Rao bound,
+    eᵀ C⁻¹ e is χ²(3): its mean over 1,000 independent bodies is 3 ± 0.08."""
+    rng = np.random.default_rng(42)
+    num_bodies, num_obs, span = 1000, 200, 10.0
+    times = np.stack([_random_times(rng, num_obs, span) for _ in range(num_bodies)])
+    directions = rng.standard_normal((num_bodies, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    omegas = directions * rng.uniform(0.5, 1.5, (num_bodies, 1))
+    q0s = _to_wxyz(Rotation.random(num_bodies, random_state=5))
+    qs = np.stack([_constant_truth(rng, times[b], omegas[b], q0s[b]) for b in range(num_bodies)])
+    qs = _flip_signs(rng, _add_noise(rng, qs))
+
+    start = time.perf_counter()
+    batched = jax.jit(jax.vmap(jaxquat.fit_angular_velocity))(times, qs)
+    jax.block_until_ready(batched)
+    batched_time = time.perf_counter() - start
+    assert np.all(batched.converged)
+    assert batched.omega.shape == (num_bodies, 3)
+
+    start = time.perf_counter()
+    single = [jaxquat.fit_angular_velocity(times[b], qs[b]) for b in range(num_bodies)]
+    jax.block_until_ready(single)
+    loop_time = time.perf_counter() - start
+    one_by_one = np.stack([np.asarray(f.omega) for f in single])
+    np.testing.assert_allclose(batched.omega, one_by_one, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        batched.q0, np.stack([np.asarray(f.q0) for f in single]), rtol=0, atol=1e-12
+    )
+    np.testing.assert_array_equal(batched.num_steps, [int(f.num_steps) for f in single])
+
+    errors = np.asarray(batched.omega) - omegas
+    mahalanobis = np.array(
+        [
+            errors[b] @ np.linalg.solve(_constant_crb(times[b], omegas[b]), errors[b])
+            for b in range(num_bodies)
+        ]
+    )
+    print(
+        f"\n1,000 bodies: vmapped {batched_time:.1f} s (incl. compile), one by one {loop_time:.1f} s; "
+        f"mean eᵀC⁻¹e = {mahalanobis.mean():.3f} (χ²(3): 3 ± 0.08); "
+        f"steps median {np.median(batched.num_steps):.0f}, max {np.max(batched.num_steps)}"
+    )
+    assert 2.75 < mahalanobis.mean() < 3.25
+    assert np.max(batched.num_steps) <= 50
+
+
+def test_float32_in_float32_out_body_frame():
+    rng = np.random.default_rng(3)
+    times = _random_times(rng, 100, 5.0)
+    omega = np.array([1.1, 0.2, -0.6])
+    q0 = _to_wxyz(Rotation.random(random_state=9))
+    qs = _flip_signs(rng, _constant_truth(rng, times, omega, q0, frame="body"))
+    fit = jaxquat.fit_angular_velocity(
+        times.astype(np.float32), qs.astype(np.float32), frame="body"
+    )
+    for leaf in jax.tree_util.tree_leaves(fit):
+        if jnp.issubdtype(leaf.dtype, jnp.floating):
+            assert leaf.dtype == jnp.float32
+    error = float(np.max(np.abs(fit.omega - omega)))
+    print(f"\nconstant body-frame ω, float32 exact data: |Δω|max = {error:.1e}")
+    assert fit.converged
+    assert error < 1e-5
+    assert min(np.linalg.norm(fit.q0 - q0), np.linalg.norm(fit.q0 + q0)) < 1e-5
+
+
+# --------------------------------------------------------------------------------------------------
+# Time-varying angular velocity
+
+
+def _coning_truth(times, spin=2.1, precession=1.3, tilt=0.4):
+    """q(t) = exp(Ω_p t ẑ) ⊗ exp(β x̂) ⊗ exp(Ω_s t ẑ): the body axis cones about ẑ.
+
+    World ω(t) = Ω_p ẑ + Ω_s · (exp(Ω_p t ẑ) exp(β x̂)) ẑ.
+    """
+    z = np.array([0.0, 0.0, 1.0])
+    outer = Rotation.from_rotvec(np.outer(precession * times, z)) * Rotation.from_rotvec(
+        [tilt, 0, 0]
+    )
+    qs = _to_wxyz(outer * Rotation.from_rotvec(np.outer(spin * times, z)))
+    return qs, precession * z + spin * outer.apply(z)
+
+
+def _relative_rms(curve, truth_fn, times):
+    t = np.linspace(times[0], times[-1], 2001)
+    error = np.asarray(curve(t)) - truth_fn(t)
+    return float(np.sqrt(np.mean(np.sum(error**2, -1)) / np.mean(np.sum(truth_fn(t) ** 2, -1))))
+
+
+def test_coning_spline_recovers_omega_t():
+    """Acceptance 2: coning, 20 knots, noise-free, non-uniform times, mixed signs: ω(t) within 1e-3."""
+    rng = np.random.default_rng(5)
+    times = _random_times(rng, 200, 6.0)
+    qs, _ = _coning_truth(times)
+    fit = jaxquat.fit_angular_velocity(times, _flip_signs(rng, qs), model="spline", knots=20)
+    error = _relative_rms(fit.omega, lambda t: _coning_truth(t)[1], times)
+    print(
+        f"\nconing, spline with 20 knots: relative RMS ω(t) error {error:.1e}, {int(fit.num_steps)} steps"
+    )
+    assert fit.converged
+    assert error <= 1e-3
+    assert isinstance(fit.omega, jaxquat.AngularVelocityCurve)
+
+
+def test_piecewise_linear_recovers_piecewise_linear_truth():
+    """Body-frame ω(t) piecewise linear, knots at observation times: the model class contains the
+    truth and ω is smooth on every interval (Magnus-4 keeps its order), so exact data (SciPy's DOP853)
+    are fitted to the integrator's accuracy."""
+    rng = np.random.default_rng(8)
+    times = _random_times(rng, 120, 4.0)
+    knots = times[[0, 40, 70, 119]]
+    knot_values = rng.uniform(-1.5, 1.5, (4, 3))
+
+    def omega_true(t):
+        return np.stack([np.interp(t, knots, knot_values[:, i]) for i in range(3)], axis=-1)
+
+    def rhs(t, q):
+        w, x, y, z = q
+        a, b, c = omega_true(t)
+        return 0.5 * np.array(
+            [
+                -x * a - y * b - z * c,
+                w * a + y * c - z * b,
+                w * b - x * c + z * a,
+                w * c + x * b - y * a,
+            ]
+        )
+
+    q0 = _to_wxyz(Rotation.random(random_state=2))
+    solution = solve_ivp(rhs, (0.0, 4.0), q0, t_eval=times, method="DOP853", rtol=1e-13, atol=1e-13)
+    fit = jaxquat.fit_angular_velocity(
+        times, solution.y.T, model="piecewise_linear", knots=knots, frame="body", substeps=4
+    )
+    error = np.max(np.abs(np.asarray(fit.omega.values) - knot_values))
+    print(f"\npiecewise-linear body ω, exact data: max knot error {error:.1e}")
+    assert fit.converged
+    assert error < 1e-8
+
+
+def test_spline_curve_matches_scipy_not_a_knot():
+    rng = np.random.default_rng(4)
+    knots = np.sort(rng.uniform(0, 3, 9))
+    values = rng.standard_normal((9, 3))
+    t = np.linspace(knots[0] - 0.2, knots[-1] + 0.2, 301)  # includes cubic extrapolation
+
+    @jax.jit
+    def evaluate(knots, values, t):
+        through = jaxquat.AngularVelocityCurve.through
+        return through(knots, values, "spline")(t), through(knots, values, "piecewise_linear")(t)
+
+    spline, linear = evaluate(knots, values, t)
+    np.testing.assert_allclose(spline, CubicSpline(knots, values)(t), rtol=1e-10, atol=1e-10)
+    inside = (t >= knots[0]) & (t <= knots[-1])
+    expected = np.stack([np.interp(t[inside], knots, values[:, i]) for i in range(3)], -1)
+    np.testing.assert_allclose(linear[inside], expected, rtol=1e-12, atol=1e-12)
+    # Outside the knots the end pieces continue linearly.
+    before = t < knots[0]
+    slope = (values[1] - values[0]) / (knots[1] - knots[0])
+    np.testing.assert_allclose(
+        linear[before], values[0] + (t[before] - knots[0])[:, None] * slope, rtol=1e-12, atol=1e-12
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# Torque-free rigid body
+
+
+def test_rigid_body_inertia_ratios_and_omega0():
+    """Acceptance 3: 500 noise-free orientations (SciPy DOP853, random signs) of a tumbling asymmetric
+    body: inertia ratios and ω₀ to 1e-4 relative."""
+    inertia = np.array([1.0, 1.7, 2.6])
+    omega0 = np.array([0.4, 1.1, -0.3])
+    q0 = _to_wxyz(Rotation.random(random_state=6))
+
+    def rhs(t, y):
+        (w, x, yy, z), (a, b, c) = y[:4], y[4:]
+        dq = 0.5 * np.array(
+            [
+                -x * a - yy * b - z * c,
+                w * a + yy * c - z * b,
+                w * b - x * c + z * a,
+                w * c + x * b - yy * a,
+            ]
+        )
+        return np.concatenate([dq, np.cross(inertia * y[4:], y[4:]) / inertia])
+
+    rng = np.random.default_rng(9)
+    times = _random_times(rng, 500, 20.0)
+    solution = solve_ivp(
+        rhs,
+        (0.0, 20.0),
+        np.concatenate([q0, omega0]),
+        t_eval=times,
+        method="DOP853",
+        rtol=1e-13,
+        atol=1e-13,
+    )
+    qs = _flip_signs(rng, solution.y[:4].T)
+    fit = jaxquat.fit_rigid_body(times, qs)
+    ratio_error = np.max(np.abs(np.asarray(fit.inertia_ratios) / (inertia[1:] / inertia[0]) - 1))
+    omega_error = np.linalg.norm(fit.omega0 - omega0) / np.linalg.norm(omega0)
+    print(
+        f"\ntorque-free body: inertia ratios rel. error {ratio_error:.1e}, ω0 rel. error {omega_error:.1e}, {int(fit.num_steps)} steps"
+    )
+    assert fit.converged
+    assert ratio_error <= 1e-4
+    assert omega_error <= 1e-4
+
+
+# --------------------------------------------------------------------------------------------------
+# Validation
+
+
+def test_validation_errors():
+    times = np.linspace(0.0, 1.0, 5)
+    qs = np.tile([1.0, 0.0, 0.0, 0.0], (5, 1))
+    fit = jaxquat.fit_angular_velocity
+    with pytest.raises(ValueError, match="at least 3 observations"):
+        fit(times[:2], qs[:2])
+    with pytest.raises(ValueError, match="strictly increasing"):
+        fit(times[::-1], qs)
+    with pytest.raises(ValueError, match="strictly increasing"):
+        fit(np.array([0.0, 1.0, 1.0, 2.0, 3.0]), qs)
+    with pytest.raises(ValueError, match="`times`"):
+        fit(times[:4], qs)
+    with pytest.raises(ValueError, match="`qs`"):
+        fit(times, qs[:, :3])
+    with pytest.raises(ValueError, match="`qs`"):
+        fit(times, qs[None])
+    with pytest.raises(ValueError, match="`weights`"):
+        fit(times, qs, weights=np.ones(4))
+    with pytest.raises(ValueError, match="`omega0`"):
+        fit(times, qs, omega0=np.zeros(4))
+    with pytest.raises(ValueError, match="`model`"):
+        fit(times, qs, model="cubic")
+    with pytest.raises(ValueError, match="`frame`"):
+        fit(times, qs, frame="inertial")
+    with pytest.raises(ValueError, match="`knots`"):
+        fit(times, qs, model="spline", knots=3)
+    with pytest.raises(ValueError, match="`knots`"):
+        fit(times, qs, model="piecewise_linear", knots=np.array([0.0, 0.5, 0.5]))
+    with pytest.raises(ValueError, match="`knots`"):
+        fit(times, qs, knots=4)
+    with pytest.raises(ValueError, match="`substeps`"):
+        fit(times, qs, model="spline", knots=4, substeps=0)
+    with pytest.raises(ValueError, match="at least 3 observations"):
+        jaxquat.fit_rigid_body(times[:2], qs[:2])
+    with pytest.raises(ValueError, match="strictly increasing"):
+        jaxquat.fit_rigid_body(times[::-1], qs)
+    with pytest.raises(ValueError, match="`inertia0`"):
+        jaxquat.fit_rigid_body(times, qs, inertia0=np.array([1.0, -1.0, 2.0]))
+    with pytest.raises(ValueError, match="`omega0`"):
+        jaxquat.fit_rigid_body(times, qs, omega0=np.zeros((2, 3)))
