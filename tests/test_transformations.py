@@ -379,38 +379,35 @@ def _eager_loop(entry, args):
 
 @pytest.mark.parametrize("entry", REGISTRY, ids=lambda e: e.name)
 def test_batching_jit_vmap_dtype(entry):
-    """Under jit: batch shapes (1,) and (3, 1, 2), vmap, and broadcasting leading axes all equal an
-    eager loop over single elements (batch shape ()); float32 in gives float32 out."""
+    """Under jit, equal to an eager loop over single elements (batch shape ()):
+    - batch shape (3, 1, 2), with the other arguments broadcasting from (2,) where the function
+      broadcasts leading axes;
+    - vmap over 6 elements each of batch shape (1,);
+    - float32 in gives float32 out."""
     args = _batched_sample(entry, (6,))
     reference = _eager_loop(entry, args)
     assert reference.dtype == np.float64
-    one = tuple(a[:1] for a in args)
-    grid = tuple(a.reshape((3, 1, 2) + a.shape[1:]) for a in args)
     broadcast = entry.broadcasts and len(args) > 1
-    # First argument batched (3, 1, 2), the others (2,): the result is (3, 1, 2).
-    mixed = (grid[0],) + tuple(a[:2] for a in args[1:]) if broadcast else one
-
-    def transformed(one, grid, flat, mixed, flat32):
-        return (
-            entry.fn(*one),
-            entry.fn(*grid),
-            jax.vmap(entry.fn)(*flat),
-            entry.fn(*mixed),
-            entry.fn(*flat32),
-        )
-
+    grid = (args[0].reshape((3, 1, 2) + args[0].shape[1:]),) + tuple(
+        a[:2] if broadcast else a.reshape((3, 1, 2) + a.shape[1:]) for a in args[1:]
+    )
+    ones = tuple(a[:, None] for a in args)
     args32 = tuple(a.astype(np.float32) for a in args)
-    out_one, out_grid, out_vmap, out_mixed, out32 = _compiled(transformed, one, grid, args, mixed, args32)
-    assert out_one.shape == (1,) + reference.shape[1:] and out_one.dtype == jnp.float64
-    assert out_grid.shape == (3, 1, 2) + reference.shape[1:]
-    _assert_close(out_one, reference[:1], rtol=1e-12, atol=1e-14)
-    _assert_close(out_grid, reference.reshape(out_grid.shape), rtol=1e-12, atol=1e-14)
-    _assert_close(out_vmap, reference, rtol=1e-12, atol=1e-14)
-    if broadcast:
+
+    def transformed(grid, ones, flat32):
+        return entry.fn(*grid), jax.vmap(entry.fn)(*ones), entry.fn(*flat32)
+
+    out_grid, out_ones, out32 = _compiled(transformed, grid, ones, args32)
+    assert out_grid.shape == (3, 1, 2) + reference.shape[1:] and out_grid.dtype == jnp.float64
+    if broadcast:  # element (i, 0, k) pairs the first argument's element 2i + k with the others' k
         expected = np.stack(
-            [np.asarray(entry.fn(grid[0][i, 0, k], *(a[k] for a in args[1:]))) for i in range(3) for k in range(2)]
+            [np.asarray(entry.fn(args[0][2 * i + k], *(a[k] for a in args[1:]))) for i in range(3) for k in range(2)]
         )
-        _assert_close(out_mixed, expected.reshape(out_mixed.shape), rtol=1e-12, atol=1e-14)
+    else:
+        expected = reference
+    _assert_close(out_grid, expected.reshape(out_grid.shape), rtol=1e-12, atol=1e-14)
+    assert out_ones.shape == (6, 1) + reference.shape[1:]
+    _assert_close(out_ones[:, 0], reference, rtol=1e-12, atol=1e-14)
     assert out32.dtype == jnp.float32
     # float32 agrees with float64 (the inputs differ by their float32 rounding).
     _assert_close(out32, reference, rtol=1e-4, atol=1e-4)
@@ -425,15 +422,13 @@ def test_identity_and_random_shapes_and_dtypes():
             np.testing.assert_array_equal(np.asarray(e)[..., 1:], 0.0)
     assert jq.identity(3).shape == (3, 4) and jq.identity().dtype == jnp.float64
     key = jax.random.key(7)
-    for shape, dtype in [((3, 1, 2), jnp.float32), ((1,), None)]:
-        r = jax.jit(jq.random, static_argnums=(1, 2))(key, shape, dtype)
-        assert r.shape == shape + (4,) and r.dtype == (dtype or jnp.float64)
-        np.testing.assert_allclose(r, jq.random(key, shape, dtype), rtol=1e-6 if dtype else 1e-15)
+    r = jax.jit(jq.random, static_argnums=(1, 2))(key, (3, 1, 2), jnp.float32)
+    assert r.shape == (3, 1, 2, 4) and r.dtype == jnp.float32
     keys = jax.random.split(key, 3)
-    np.testing.assert_allclose(
-        jax.vmap(jq.random)(keys), np.stack([np.asarray(jq.random(k)) for k in keys]), rtol=1e-15
-    )
-    assert jq.random(key).shape == (4,) and jq.random(key, 5).shape == (5, 4)
+    batched = jax.jit(jax.vmap(jq.random))(keys)
+    assert batched.shape == (3, 4) and batched.dtype == jnp.float64
+    np.testing.assert_allclose(batched, np.stack([np.asarray(jq.random(k)) for k in keys]), rtol=1e-15)
+    assert jq.random(key, 5).shape == (5, 4)
 
 
 # ---------------------------------------------------------------------------------------------------
