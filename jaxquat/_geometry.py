@@ -140,9 +140,7 @@ def canonicalize(q: ArrayLike) -> Array:
     """
     q = check_trailing(q, 4, "q")
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    flip = (w < 0) | (
-        (w == 0) & ((x < 0) | ((x == 0) & ((y < 0) | ((y == 0) & (z < 0)))))
-    )
+    flip = (w < 0) | ((w == 0) & ((x < 0) | ((x == 0) & ((y < 0) | ((y == 0) & (z < 0))))))
     return jnp.where(flip[..., None], -q, q)
 
 
@@ -240,4 +238,6 @@ def check_unit(q: ArrayLike, *, atol: float | None = None) -> Array:
     if atol is None:
         atol = float(jnp.finfo(q.dtype).eps) ** 0.5
     deviation = jnp.abs(jnp.sqrt(sum_squares(q)) - 1.0)
-    return eqx.error_if(q, ~(deviation <= atol), f"`q` is not unit: |q| - 1 exceeds atol={atol:.3g}.")
+    return eqx.error_if(
+        q, ~(deviation <= atol), f"`q` is not unit: |q| - 1 exceeds atol={atol:.3g}."
+    )

@@ -98,7 +98,9 @@ def from_rotvec(r: ArrayLike) -> Array:
     """
     r = check_trailing(r, 3, "r")
     theta_sq = sum_squares(r)
-    return jnp.concatenate([cos_half(theta_sq)[..., None], sinc_half(theta_sq)[..., None] * r], axis=-1)
+    return jnp.concatenate(
+        [cos_half(theta_sq)[..., None], sinc_half(theta_sq)[..., None] * r], axis=-1
+    )
 
 
 def to_rotvec(q: ArrayLike) -> Array:
@@ -173,7 +175,8 @@ def from_matrix(m: ArrayLike) -> Array:
     m = check_matrix(m, "m")
     trace = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
     a = jnp.stack(
-        [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], axis=-1
+        [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]],
+        axis=-1,
     )
     eye = jnp.broadcast_to(jnp.eye(3, dtype=m.dtype), m.shape)
     lower = m + jnp.swapaxes(m, -1, -2) - trace[..., None, None] * eye
@@ -307,7 +310,9 @@ def to_euler(q: ArrayLike, seq: str) -> Array:
     angles = jnp.stack([first, middle, third], axis=-1)
     # Every angle is in [−2π, 2π]; one wrap into [−π, π] as SciPy does (±π are both kept).
     two_pi = 2.0 * jnp.pi
-    return jnp.where(angles < -jnp.pi, angles + two_pi, jnp.where(angles > jnp.pi, angles - two_pi, angles))
+    return jnp.where(
+        angles < -jnp.pi, angles + two_pi, jnp.where(angles > jnp.pi, angles - two_pi, angles)
+    )
 
 
 def from_two_vectors(a: ArrayLike, b: ArrayLike) -> Array:

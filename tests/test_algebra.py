@@ -25,7 +25,9 @@ def general():
 
 
 def test_hamilton_table():
-    mul = lambda p, q: np.asarray(jq.multiply(p, q))
+    def mul(p, q):
+        return np.asarray(jq.multiply(p, q))
+
     for unit in (I, J, K):
         np.testing.assert_array_equal(mul(unit, unit), -ONE)
     np.testing.assert_array_equal(mul(mul(I, J), K), -ONE)  # ijk = −1
@@ -42,7 +44,10 @@ def test_multiply_matches_numpy_quaternion_and_scipy(general):
     p, q = general
     expected = npq.as_float_array(npq.from_float_array(p) * npq.from_float_array(q))
     np.testing.assert_allclose(jq.multiply(p, q), expected, rtol=0, atol=1e-13)
-    u, v = np.asarray(random_unit(jax.random.key(1), (1000,))), np.asarray(random_unit(jax.random.key(2), (1000,)))
+    u, v = (
+        np.asarray(random_unit(jax.random.key(1), (1000,))),
+        np.asarray(random_unit(jax.random.key(2), (1000,))),
+    )
     composed = Rotation.from_quat(v, scalar_first=True) * Rotation.from_quat(u, scalar_first=True)
     np.testing.assert_allclose(
         jq.to_matrix(jq.multiply(v, u)), composed.as_matrix(), rtol=0, atol=1e-12
@@ -67,7 +72,9 @@ def test_algebraic_identities(general):
     np.testing.assert_allclose(jq.norm(p) ** 2, jq.multiply(p, jq.conjugate(p))[:, 0], rtol=1e-14)
     np.testing.assert_allclose(jq.norm(jq.normalize(p)), 1.0, atol=1e-15)
     np.testing.assert_array_equal(jq.conjugate(p), p * [1, -1, -1, -1])
-    np.testing.assert_array_equal(jq.from_vector(p[:, 1:]), np.concatenate([np.zeros((1000, 1)), p[:, 1:]], 1))
+    np.testing.assert_array_equal(
+        jq.from_vector(p[:, 1:]), np.concatenate([np.zeros((1000, 1)), p[:, 1:]], 1)
+    )
     np.testing.assert_array_equal(jq.vector_part(p), p[:, 1:])
 
 
@@ -78,13 +85,17 @@ def test_exp_and_log_match_numpy_quaternion_and_expm(general):
     expected = npq.as_float_array(np.log(npq.from_float_array(p)))
     np.testing.assert_allclose(jq.log(p), expected, rtol=1e-13, atol=1e-13)
     # exp via the matrix exponential of the left-multiplication matrix L(q): exp(q) = expm(L(q)) e₀.
-    left = np.asarray(jax.vmap(jax.jacfwd(lambda r, q: jq.multiply(q, r)), in_axes=(None, 0))(ONE, p[:50]))
+    left = np.asarray(
+        jax.vmap(jax.jacfwd(lambda r, q: jq.multiply(q, r)), in_axes=(None, 0))(ONE, p[:50])
+    )
     via_expm = np.stack([scipy.linalg.expm(m)[:, 0] for m in left])
     np.testing.assert_allclose(jq.exp(p[:50]), via_expm, rtol=1e-12, atol=1e-13)
     # Inverse pair on the principal branch.
     np.testing.assert_allclose(jq.exp(jq.log(p)), p, rtol=0, atol=1e-13)
     v = p.copy()
-    v[:, 1:] *= (3.0 / np.linalg.norm(v[:, 1:], axis=-1, keepdims=True)) * np.random.default_rng(0).uniform(size=(1000, 1))
+    v[:, 1:] *= (3.0 / np.linalg.norm(v[:, 1:], axis=-1, keepdims=True)) * np.random.default_rng(
+        0
+    ).uniform(size=(1000, 1))
     np.testing.assert_allclose(jq.log(jq.exp(v)), v, rtol=0, atol=1e-12)  # |vec| < π
 
 
@@ -96,13 +107,20 @@ def test_exp_log_at_and_near_the_singular_points():
     np.testing.assert_allclose(jq.log(2.0 * ONE), [np.log(2.0), 0, 0, 0], rtol=1e-15)
     for eps in [1e-12, 1e-6, 1e-3]:
         v = eps * np.array([0.6, 0.0, -0.8])
-        np.testing.assert_allclose(jq.exp(np.concatenate([[0.0], v])), np.concatenate([[np.cos(eps)], np.sin(eps) * v / eps]), rtol=1e-15, atol=1e-20)
+        np.testing.assert_allclose(
+            jq.exp(np.concatenate([[0.0], v])),
+            np.concatenate([[np.cos(eps)], np.sin(eps) * v / eps]),
+            rtol=1e-15,
+            atol=1e-20,
+        )
         q = np.concatenate([[np.cos(eps)], np.sin(eps) * v / eps])
         np.testing.assert_allclose(jq.log(q)[1:], v, rtol=1e-13)
 
     @jax.jit
     def derivatives(w):
-        return jax.jacfwd(jq.exp)(jnp.array([w, 0.0, 0.0, 0.0])), jax.jacrev(jq.log)(jnp.array([w, 0.0, 0.0, 0.0]))
+        return jax.jacfwd(jq.exp)(jnp.array([w, 0.0, 0.0, 0.0])), jax.jacrev(jq.log)(
+            jnp.array([w, 0.0, 0.0, 0.0])
+        )
 
     with jax.debug_nans(True):
         d_exp, d_log = derivatives(0.3)
@@ -142,5 +160,7 @@ def test_wrong_trailing_dimension_raises(call, name):
 
 
 def test_incompatible_batch_shapes_raise():
-    with pytest.raises(ValueError, match=r"leading \(batch\) shapes \(3,\), \(2,\) do not broadcast"):
+    with pytest.raises(
+        ValueError, match=r"leading \(batch\) shapes \(3,\), \(2,\) do not broadcast"
+    ):
         jq.multiply(np.zeros((3, 4)), np.zeros((2, 4)))

@@ -65,7 +65,9 @@ def test_angle_between_gradient_near_and_at_zero():
 
     @jax.jit
     def slopes(ts):
-        return jax.vmap(jax.grad(along))(ts), jax.vmap(lambda t: jax.jvp(along, (t,), (1.0,))[1])(ts)
+        return jax.vmap(jax.grad(along))(ts), jax.vmap(lambda t: jax.jvp(along, (t,), (1.0,))[1])(
+            ts
+        )
 
     ts = jnp.array([1e-12, 1e-6, 0.3, 3.0])
     with jax.debug_nans(True):
@@ -86,7 +88,9 @@ def test_slerp_matches_scipy_and_has_constant_speed(pairs):
     ts = np.linspace(0.0, 1.0, 7)
     ours = np.asarray(jq.slerp(p[:, None], q[:, None], ts[None, :]))
     for n in range(20):
-        scipy_path = Slerp([0.0, 1.0], Rotation.from_quat(np.stack([p[n], q[n]]), scalar_first=True))(ts)
+        scipy_path = Slerp(
+            [0.0, 1.0], Rotation.from_quat(np.stack([p[n], q[n]]), scalar_first=True)
+        )(ts)
         assert quat_distance(ours[n], scipy_path.as_quat(scalar_first=True)) < 1e-12
     total = np.asarray(jq.angle_between(p, q))
     np.testing.assert_allclose(jq.angle_between(p[:, None], ours), total[:, None] * ts, atol=1e-12)
@@ -110,9 +114,15 @@ def test_squad_spline_has_continuous_angular_velocity():
     keys = np.asarray(random_unit(jax.random.key(14), (5,)))
     # A smooth-ish key sequence: small steps, mixed signs (the construction must not care).
     steps = np.array([[0, 0, 0], [0.3, 0.1, 0], [0.5, 0.6, 0.2], [0.4, 1.0, 0.7], [0.9, 1.2, 0.5]])
-    keys = np.asarray(jq.multiply(jq.from_rotvec(steps), keys[0])) * np.array([1, -1, 1, 1, -1])[:, None]
+    keys = (
+        np.asarray(jq.multiply(jq.from_rotvec(steps), keys[0]))
+        * np.array([1, -1, 1, 1, -1])[:, None]
+    )
     controls = np.stack(
-        [np.asarray(jq.squad_control_points(keys[i - 1], keys[i], keys[i + 1])) for i in range(1, 4)]
+        [
+            np.asarray(jq.squad_control_points(keys[i - 1], keys[i], keys[i + 1]))
+            for i in range(1, 4)
+        ]
     )
 
     def omega(p, a, b, q, t):  # world-frame angular velocity 2·vec(q̇ q*) of a squad segment
@@ -143,11 +153,19 @@ def test_squad_spline_has_continuous_angular_velocity():
 def test_canonicalize_matches_scipy(pairs):
     p = pairs[0][:1000] * np.where(np.arange(1000) % 2, 1.0, -1.0)[:, None]
     special = np.array(
-        [[0.0, -0.6, 0.8, 0.0], [0.0, 0.0, -1.0, 0.0], [0.0, 0.0, 0.0, -1.0], [-1.0, 0, 0, 0], [0, 0.6, -0.8, 0]]
+        [
+            [0.0, -0.6, 0.8, 0.0],
+            [0.0, 0.0, -1.0, 0.0],
+            [0.0, 0.0, 0.0, -1.0],
+            [-1.0, 0, 0, 0],
+            [0, 0.6, -0.8, 0],
+        ]
     )
     q = np.concatenate([p, special])
     ours = np.asarray(jq.canonicalize(q))
-    scipy_canonical = Rotation.from_quat(q, scalar_first=True).as_quat(canonical=True, scalar_first=True)
+    scipy_canonical = Rotation.from_quat(q, scalar_first=True).as_quat(
+        canonical=True, scalar_first=True
+    )
     np.testing.assert_allclose(ours, scipy_canonical, rtol=0, atol=1e-15)  # SciPy renormalises
     assert np.all(ours[:, 0] >= 0)
     np.testing.assert_allclose(jq.to_matrix(ours), jq.to_matrix(q), atol=1e-15)
@@ -162,7 +180,12 @@ def test_random_is_haar_uniform():
     result = stats.kstest(angle, lambda t: (t - np.sin(t)) / np.pi)
     assert result.pvalue > 1e-3
     # ... and a uniform density in θ would be rejected: the test has power.
-    assert stats.kstest(np.random.default_rng(0).uniform(0, np.pi, 20_000), lambda t: (t - np.sin(t)) / np.pi).pvalue < 1e-6
+    assert (
+        stats.kstest(
+            np.random.default_rng(0).uniform(0, np.pi, 20_000), lambda t: (t - np.sin(t)) / np.pi
+        ).pvalue
+        < 1e-6
+    )
     # Haar measure: E[R] = 0 (each entry has variance 1/3; 5 standard errors).
     mean_matrix = np.mean(np.asarray(jq.to_matrix(q)), axis=0)
     assert np.max(np.abs(mean_matrix)) < 5 * math.sqrt(1 / 3 / len(q))
@@ -197,7 +220,11 @@ def test_mean_matches_scipy_with_and_without_weights(pairs):
     groups = q[:1000].reshape(10, 100, 4)
     batched = np.asarray(jq.mean(groups, axis=1))
     for g in range(10):
-        assert_quat_close(batched[g], Rotation.from_quat(groups[g], scalar_first=True).mean().as_quat(scalar_first=True), atol=1e-12)
+        assert_quat_close(
+            batched[g],
+            Rotation.from_quat(groups[g], scalar_first=True).mean().as_quat(scalar_first=True),
+            atol=1e-12,
+        )
     assert_quat_close(jq.mean(groups.transpose(1, 0, 2), axis=0), batched, atol=1e-14)
 
 
@@ -207,7 +234,9 @@ def test_mean_closed_forms():
     # Two rotations about one axis: the mean is the rotation halfway between them.
     a = jq.from_axis_angle([0.0, 0.0, 1.0], 0.2)
     b = jq.from_axis_angle([0.0, 0.0, 1.0], 1.0)
-    assert_quat_close(jq.mean(np.stack([a, b])), jq.from_axis_angle([0.0, 0.0, 1.0], 0.6), atol=1e-14)
+    assert_quat_close(
+        jq.mean(np.stack([a, b])), jq.from_axis_angle([0.0, 0.0, 1.0], 0.6), atol=1e-14
+    )
     # Weights (w, 1−w) on a symmetric pair ±φ about an axis: the chordal mean solves tan 2ψ = (2w−1) tan 2φ·…
     # — check the simplest case: weight 0 returns the other rotation exactly.
     assert_quat_close(jq.mean(np.stack([a, b]), np.array([0.0, 1.0])), b, atol=1e-14)

@@ -82,7 +82,11 @@ def test_seed_quaternion_to_matrix():
     exact = np.array([[-2 / 3, 2 / 15, 11 / 15], [2 / 3, -1 / 3, 2 / 3], [1 / 3, 14 / 15, 2 / 15]])
     np.testing.assert_allclose(m, exact, atol=1e-12)
     printed = np.array(
-        [[-0.666667, 0.133333, 0.733333], [0.666667, -0.333333, 0.666667], [0.333333, 0.933333, 0.133333]]
+        [
+            [-0.666667, 0.133333, 0.733333],
+            [0.666667, -0.333333, 0.666667],
+            [0.333333, 0.933333, 0.133333],
+        ]
     )
     np.testing.assert_allclose(m, printed, atol=5e-7)  # the seed prints 6 digits
     np.testing.assert_allclose(m @ [3, 0, 0], [-2, 2, 1], atol=1e-12)
@@ -95,13 +99,21 @@ def test_seed_matrix_round_trips(rotations):
     np.testing.assert_allclose(jq.to_matrix(jq.from_matrix(m)), m, atol=1e-12)
     assert_quat_close(jq.from_matrix(jq.to_matrix(q)), q, atol=1e-12)
     # The seed's counterexample: q = −1 comes back as +1, the same rotation.
-    np.testing.assert_allclose(jq.from_matrix(jq.to_matrix([-1.0, 0, 0, 0])), [1, 0, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(
+        jq.from_matrix(jq.to_matrix([-1.0, 0, 0, 0])), [1, 0, 0, 0], atol=1e-12
+    )
 
 
 # The DeformableBodies.jl example of seed 001: five point masses rotated by 1+2i+3j+4k about their
 # centre of mass (computed inline; the dynamics module comes later).
 SEED_MASSES = np.array(
-    [0.027623475555394572, 0.08235034045511802, 0.16330720003612642, 0.8618919657812625, 0.5806780634969708]
+    [
+        0.027623475555394572,
+        0.08235034045511802,
+        0.16330720003612642,
+        0.8618919657812625,
+        0.5806780634969708,
+    ]
 )
 SEED_POSITIONS = np.array(
     [
@@ -165,12 +177,16 @@ def test_rotvec_axis_angle_and_xyzw_match_scipy(rotations):
     scipy_q = Rotation.from_rotvec(vectors).as_quat(scalar_first=True)
     assert quat_distance(jq.from_rotvec(vectors), scipy_q) < 1e-12
     axis, angle = jq.to_axis_angle(rotations)
-    np.testing.assert_allclose(np.asarray(axis) * np.asarray(angle)[:, None], rotvec, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(axis) * np.asarray(angle)[:, None], rotvec, rtol=0, atol=1e-12
+    )
     assert np.all((np.asarray(angle) >= 0) & (np.asarray(angle) <= np.pi))
     angles = np.linalg.norm(vectors, axis=-1)
     assert quat_distance(jq.from_axis_angle(3.0 * vectors, angles), scipy_q) < 1e-12
     np.testing.assert_allclose(jq.to_xyzw(rotations), r.as_quat(), rtol=0, atol=1e-15)
-    np.testing.assert_allclose(jq.from_xyzw(r.as_quat()), r.as_quat(scalar_first=True), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(
+        jq.from_xyzw(r.as_quat()), r.as_quat(scalar_first=True), rtol=0, atol=1e-15
+    )
     np.testing.assert_array_equal(jq.from_xyzw(jq.to_xyzw(rotations)), rotations)
 
 
@@ -212,7 +228,9 @@ def test_euler_gimbal_lock_follows_scipy(seq):
     """At (and within 1e-7 of) gimbal lock the third angle is set to 0, as SciPy does."""
     rng = np.random.default_rng(3)
     proper = seq[0].lower() == seq[2].lower()
-    middles = [0.0, np.pi, 1e-8, np.pi - 1e-8] if proper else [np.pi / 2, -np.pi / 2, np.pi / 2 - 1e-8]
+    middles = (
+        [0.0, np.pi, 1e-8, np.pi - 1e-8] if proper else [np.pi / 2, -np.pi / 2, np.pi / 2 - 1e-8]
+    )
     angles = rng.uniform(-np.pi, np.pi, size=(len(middles) * 50, 3))
     angles[:, 1] = np.repeat(middles, 50)
     q = Rotation.from_euler(seq, angles).as_quat(scalar_first=True)
@@ -234,7 +252,9 @@ def test_from_matrix_is_the_nearest_rotation_and_differentiable():
     q = np.asarray(random_unit(jax.random.key(4), (200,)))
     m = np.asarray(jq.to_matrix(q)) + 1e-3 * rng.normal(size=(200, 3, 3))
     u, _, vt = np.linalg.svd(m)
-    d = np.sign(np.linalg.det(u @ vt))  # SO(3) projection: flip the smallest singular direction if needed
+    d = np.sign(
+        np.linalg.det(u @ vt)
+    )  # SO(3) projection: flip the smallest singular direction if needed
     projection = np.einsum("nij,nj,njk->nik", u, np.stack([np.ones(200), np.ones(200), d], -1), vt)
     nearest = np.asarray(jax.jit(lambda m: jq.to_matrix(jq.from_matrix(m)))(m))
     assert np.max(np.abs(nearest - projection)) < 1e-6
@@ -251,10 +271,17 @@ def test_from_matrix_is_the_nearest_rotation_and_differentiable():
     @jax.jit
     def derivatives(m0, perturbed):
         stationarity = jax.grad(loss)(jnp.zeros(3), jq.from_matrix(m0), m0)
-        return jax.jacfwd(jq.from_matrix)(m0), jax.jacrev(jq.from_matrix)(m0), jq.from_matrix(perturbed), stationarity
+        return (
+            jax.jacfwd(jq.from_matrix)(m0),
+            jax.jacrev(jq.from_matrix)(m0),
+            jq.from_matrix(perturbed),
+            stationarity,
+        )
 
     forward, reverse, values, stationarity = derivatives(m0, perturbed)
-    fd = np.moveaxis((np.asarray(values[:9]) - np.asarray(values[9:])) / (2 * h), 0, -1).reshape(4, 3, 3)
+    fd = np.moveaxis((np.asarray(values[:9]) - np.asarray(values[9:])) / (2 * h), 0, -1).reshape(
+        4, 3, 3
+    )
     np.testing.assert_allclose(forward, fd, atol=1e-8)
     np.testing.assert_allclose(reverse, forward, atol=1e-12)
     # Optimality: ‖R − M‖² is stationary along every tangent direction at the result.
@@ -310,11 +337,20 @@ def test_from_two_vectors_is_the_shortest_alignment():
     axis, angle = jq.to_axis_angle(q)
     between = np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1))
     np.testing.assert_allclose(angle, between, atol=1e-12)  # the smallest possible angle
-    np.testing.assert_allclose(np.sum(np.asarray(axis) * a_unit, -1), 0.0, atol=1e-12)  # axis ⟂ a, b
+    np.testing.assert_allclose(
+        np.sum(np.asarray(axis) * a_unit, -1), 0.0, atol=1e-12
+    )  # axis ⟂ a, b
     np.testing.assert_allclose(np.sum(np.asarray(axis) * b_unit, -1), 0.0, atol=1e-12)
-    scipy_q = np.stack([Rotation.align_vectors(b[n][None], a[n][None])[0].as_quat(scalar_first=True) for n in range(20)])
+    scipy_q = np.stack(
+        [
+            Rotation.align_vectors(b[n][None], a[n][None])[0].as_quat(scalar_first=True)
+            for n in range(20)
+        ]
+    )
     assert quat_distance(q[:20], scipy_q) < 1e-12
-    assert_quat_close(jq.from_two_vectors([1.0, 2.0, 3.0], [2.0, 4.0, 6.0]), jq.identity(), atol=1e-15)
+    assert_quat_close(
+        jq.from_two_vectors([1.0, 2.0, 3.0], [2.0, 4.0, 6.0]), jq.identity(), atol=1e-15
+    )
 
 
 def test_from_two_vectors_antiparallel_is_a_half_turn_without_nan():
@@ -340,12 +376,21 @@ def test_from_two_vectors_antiparallel_is_a_half_turn_without_nan():
 @pytest.mark.parametrize(
     "call, match",
     [
-        (lambda: jq.from_matrix(np.eye(4)), r"`m` must have shape \(\.\.\., 3, 3\); got shape \(4, 4\)"),
+        (
+            lambda: jq.from_matrix(np.eye(4)),
+            r"`m` must have shape \(\.\.\., 3, 3\); got shape \(4, 4\)",
+        ),
         (lambda: jq.to_matrix(np.zeros(3)), r"`q` must have shape \(\.\.\., 4\); got shape \(3,\)"),
         (lambda: jq.from_euler("xyz", np.zeros(2)), r"`angles` must have shape \(\.\.\., 3\)"),
         (lambda: jq.to_euler(np.zeros((2, 3)), "xyz"), r"`q` must have shape \(\.\.\., 4\)"),
-        (lambda: jq.rotate(np.zeros(3), Q, center=np.zeros(4)), r"`center` must have shape \(\.\.\., 3\)"),
-        (lambda: jq.from_two_vectors(np.zeros(2), np.ones(3)), r"`a` must have shape \(\.\.\., 3\)"),
+        (
+            lambda: jq.rotate(np.zeros(3), Q, center=np.zeros(4)),
+            r"`center` must have shape \(\.\.\., 3\)",
+        ),
+        (
+            lambda: jq.from_two_vectors(np.zeros(2), np.ones(3)),
+            r"`a` must have shape \(\.\.\., 3\)",
+        ),
         (lambda: jq.from_rotvec(np.zeros((3, 4))), r"`r` must have shape \(\.\.\., 3\)"),
         (lambda: jq.from_axis_angle(np.zeros(4), 1.0), r"`axis` must have shape \(\.\.\., 3\)"),
         (lambda: jq.from_xyzw(np.zeros(3)), r"`q` must have shape \(\.\.\., 4\)"),

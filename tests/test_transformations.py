@@ -233,9 +233,7 @@ REGISTRY = [
     Entry(
         "exp",
         jq.exp,
-        lambda rng, kind: (
-            np.concatenate([[0.3 * rng.normal()], 0.5 * rotvec(rng, kind)]),
-        ),
+        lambda rng, kind: (np.concatenate([[0.3 * rng.normal()], 0.5 * rotvec(rng, kind)]),),
     ),
     Entry("log", jq.log, _scaled_q),
     # Rotations
@@ -401,7 +399,11 @@ def test_batching_jit_vmap_dtype(entry):
     assert out_grid.shape == (3, 1, 2) + reference.shape[1:] and out_grid.dtype == jnp.float64
     if broadcast:  # element (i, 0, k) pairs the first argument's element 2i + k with the others' k
         expected = np.stack(
-            [np.asarray(entry.fn(args[0][2 * i + k], *(a[k] for a in args[1:]))) for i in range(3) for k in range(2)]
+            [
+                np.asarray(entry.fn(args[0][2 * i + k], *(a[k] for a in args[1:])))
+                for i in range(3)
+                for k in range(2)
+            ]
         )
     else:
         expected = reference
@@ -427,7 +429,9 @@ def test_identity_and_random_shapes_and_dtypes():
     keys = jax.random.split(key, 3)
     batched = jax.jit(jax.vmap(jq.random))(keys)
     assert batched.shape == (3, 4) and batched.dtype == jnp.float64
-    np.testing.assert_allclose(batched, np.stack([np.asarray(jq.random(k)) for k in keys]), rtol=1e-15)
+    np.testing.assert_allclose(
+        batched, np.stack([np.asarray(jq.random(k)) for k in keys]), rtol=1e-15
+    )
     assert jq.random(key, 5).shape == (5, 4)
 
 
@@ -443,7 +447,10 @@ def _grad_points(entry, kinds):
         for _ in range(NUM_RANDOM if kind == "random" else 2):
             labels.append(kind)
             points.append(entry.sample(rng, kind))
-    args = tuple(np.stack([np.asarray(p[i], dtype=np.float64) for p in points]) for i in range(len(points[0])))
+    args = tuple(
+        np.stack([np.asarray(p[i], dtype=np.float64) for p in points])
+        for i in range(len(points[0]))
+    )
     return labels, args
 
 
@@ -468,7 +475,9 @@ def _perturbed(entry, args):
             ]
         )
     return [
-        np.concatenate([blocks[i][j] for i in range(len(args))], axis=1).reshape((-1,) + args[j].shape[1:])
+        np.concatenate([blocks[i][j] for i in range(len(args))], axis=1).reshape(
+            (-1,) + args[j].shape[1:]
+        )
         for j in range(len(args))
     ]
 
@@ -478,10 +487,10 @@ def _differences(entry, args, outs):
     sizes = [math.prod(a.shape[1:]) for a in args]
     outs = np.asarray(outs, dtype=np.float64).reshape((args[0].shape[0], 2 * sum(sizes), -1))
     jacobians, start = [], 0
-    for i, a in enumerate(args):
-        block = outs[:, start : start + 2 * sizes[i]]
-        start += 2 * sizes[i]
-        diff = (block[:, : sizes[i]] - block[:, sizes[i] :]) / (2 * entry.fd_step)  # (N, D, out)
+    for size in sizes:
+        block = outs[:, start : start + 2 * size]
+        start += 2 * size
+        diff = (block[:, :size] - block[:, size:]) / (2 * entry.fd_step)  # (N, D, out)
         jacobians.append(np.moveaxis(diff, 1, -1))  # (N, out, D)
     return jacobians
 
@@ -498,11 +507,16 @@ def test_gradients_match_finite_differences(entry):
         for x, y in zip(
             _perturbed(entry, tuple(a[checked] for a in args)),
             _perturbed(entry, tuple(a.astype(np.float64)[checked] for a in args32)),
+            strict=True,
         )
     ]
 
     def everything(args64, args32, fd_inputs):
-        return _jacobians(entry.fn, args64), _jacobians(entry.fn, args32), jax.vmap(entry.fn)(*fd_inputs)
+        return (
+            _jacobians(entry.fn, args64),
+            _jacobians(entry.fn, args32),
+            jax.vmap(entry.fn)(*fd_inputs),
+        )
 
     with jax.debug_nans(True):
         ad64, ad32, fd_outs = _compiled(everything, args, args32, fd_inputs)
@@ -516,14 +530,30 @@ def test_gradients_match_finite_differences(entry):
         fd = _differences(entry, fd_points, outs)
         for j in list(forward) + list(reverse):  # NaN-free at every kind of point
             assert j.dtype == dtype
-            assert np.all(np.isfinite(np.asarray(j))), f"non-finite Jacobian of {entry.name} ({dtype.__name__})"
+            assert np.all(np.isfinite(np.asarray(j))), (
+                f"non-finite Jacobian of {entry.name} ({dtype.__name__})"
+            )
         num = fd[0].shape[0]
-        forward = [np.asarray(j, np.float64)[checked].reshape(num, fd[i].shape[1], -1) for i, j in enumerate(forward)]
-        reverse = [np.asarray(j, np.float64)[checked].reshape(num, fd[i].shape[1], -1) for i, j in enumerate(reverse)]
+        forward = [
+            np.asarray(j, np.float64)[checked].reshape(num, fd[i].shape[1], -1)
+            for i, j in enumerate(forward)
+        ]
+        reverse = [
+            np.asarray(j, np.float64)[checked].reshape(num, fd[i].shape[1], -1)
+            for i, j in enumerate(reverse)
+        ]
         for n, label in enumerate(labels):
             scale = max(1.0, max(float(np.max(np.abs(j[n]))) for j in fd))
-            fwd_err = max(float(np.max(np.abs(a[n] - b[n]))) for a, b in zip(forward, fd))
-            rev_err = max(float(np.max(np.abs(a[n] - b[n]))) for a, b in zip(reverse, forward))
+            fwd_err = max(
+                float(np.max(np.abs(a[n] - b[n]))) for a, b in zip(forward, fd, strict=True)
+            )
+            rev_err = max(
+                float(np.max(np.abs(a[n] - b[n]))) for a, b in zip(reverse, forward, strict=True)
+            )
             where = f"{entry.name} ({dtype.__name__}) at {label}"
-            assert fwd_err <= rtol * scale, f"{where}: jacfwd vs FD {fwd_err:.2e} (scale {scale:.1e})"
-            assert rev_err <= rtol * scale, f"{where}: jacrev vs jacfwd {rev_err:.2e} (scale {scale:.1e})"
+            assert fwd_err <= rtol * scale, (
+                f"{where}: jacfwd vs FD {fwd_err:.2e} (scale {scale:.1e})"
+            )
+            assert rev_err <= rtol * scale, (
+                f"{where}: jacrev vs jacfwd {rev_err:.2e} (scale {scale:.1e})"
+            )
