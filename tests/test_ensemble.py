@@ -318,24 +318,3 @@ def test_streaming_memory_is_bounded_by_the_chunk(tmp_path):
     assert (after - before) * 1024 < 60e6, (before, after)
     data = load_ensemble(tmp_path / "run")
     assert data["states"].shape == (201, 50_000, 4) and data["complete"]
-
-
-def test_notebook_05_runs(tmp_path):
-    """The ensembles notebook executes top to bottom (its cells assert their own results)."""
-    nbformat = pytest.importorskip("nbformat")
-    nbclient = pytest.importorskip("nbclient")
-    path = os.path.join(os.path.dirname(__file__), "..", "notebooks", "05_ensembles.ipynb")
-    notebook = nbformat.read(path, as_version=4)
-    assert all(not cell.get("outputs") for cell in notebook.cells if cell.cell_type == "code")
-    os.environ.setdefault("MPLBACKEND", "Agg")
-    client = nbclient.NotebookClient(
-        notebook,
-        timeout=600,
-        kernel_name="python3",
-        resources={"metadata": {"path": str(tmp_path)}},
-    )
-    client.execute()
-    outputs = "".join(
-        out.get("text", "") for cell in notebook.cells for out in cell.get("outputs", [])
-    )
-    assert "complete: True" in outputs
