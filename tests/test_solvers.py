@@ -1,0 +1,398 @@
+"""diffrax vector fields and Lie-group solvers: exactness, orders, adaptivity, dense output, gradients.
+
+References are closed forms: the coning motion q(t) = exp(Ωt ẑ) exp(α x̂) exp(λt ẑ) (angular velocity in
+both frames in closed form), exp(ωt) ⊗ q0 for constant ω, products of exponentials for sampled ω, and
+stock `diffrax.Tsit5` at a tight tolerance as an independent check for the rigid body.
+"""
+
+from __future__ import annotations
+
+import math
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxquat as jq
+
+from helpers import random_unit
+
+SPIN, TILT, PRECESS = 1.3, 0.7, 2.1
+T_END = 2.3  # not a whole number of periods: odd-order error terms stay visible
+
+
+def coning_exact(t):
+    """q(t) = exp(Ωt ẑ) ⊗ exp(α x̂) ⊗ exp(λt ẑ), for scalar or batched t."""
+    t = jnp.asarray(t)
+    zero = jnp.zeros_like(t)
+    spin = jq.from_rotvec(jnp.stack([zero, zero, SPIN * t], -1))
+    tilt = jq.from_rotvec(jnp.array([TILT, 0.0, 0.0], t.dtype))
+    precess = jq.from_rotvec(jnp.stack([zero, zero, PRECESS * t], -1))
+    return jq.multiply(jq.multiply(spin, tilt), precess)
+
+
+class Coning(eqx.Module):
+    """The coning angular velocity: world Ωẑ + R(exp(Ωt ẑ) exp(α x̂)) λẑ, body λẑ + R(…)ᵀ Ωẑ."""
+
+    frame: str = eqx.field(static=True)
+
+    def __call__(self, t, q):
+        t = jnp.asarray(t)
+        zero = jnp.zeros_like(t)
+        z = jnp.stack([zero, zero, 1.0 + zero])
+        tilt = jq.from_rotvec(jnp.stack([TILT + zero, zero, zero]))
+        if self.frame == "world":
+            spin = jq.from_rotvec(jnp.stack([zero, zero, SPIN * t]))
+            return SPIN * z + jq.rotate(PRECESS * z, jq.multiply(spin, tilt))
+        precess = jq.from_rotvec(jnp.stack([zero, zero, PRECESS * t]))
+        return PRECESS * z + jq.rotate(SPIN * z, jq.conjugate(jq.multiply(tilt, precess)))
+
+
+def angle(p, q):
+    return np.asarray(jq.angle_between(p, q))
+
+
+def slope(hs, errors):
+    return float(np.polyfit(np.log(hs), np.log(errors), 1)[0])
+
+
+# ----------------------------------------------------------------------------------------------------
+# Vector fields
+
+
+def test_vector_fields_are_the_rates():
+    q = random_unit(jax.random.key(0), (5,))
+    omega = jax.random.normal(jax.random.key(1), (5, 3))
+    for frame in ("world", "body"):
+        plain = jq.kinematic_vector_field(omega, frame=frame)
+        corrected = jq.corrected_vector_field(omega, 0.3, frame=frame)
+        np.testing.assert_allclose(plain(0.0, q, None), jq.rate(q, omega, frame=frame), rtol=0, atol=1e-15)
+        np.testing.assert_allclose(
+            corrected(0.0, q, None), jq.corrected_rate(q, omega, 0.3, frame=frame), rtol=0, atol=1e-15
+        )
+    # Callables: omega(t, q) and omega(t, q, args) (then diffeqsolve's args are passed).
+    field = jq.kinematic_vector_field(lambda t, q, args: args * omega)
+    np.testing.assert_allclose(field(0.0, q, 2.0), jq.rate(q, 2.0 * omega), atol=1e-15)
+    field = jq.kinematic_vector_field(lambda t, q: t * omega)
+    np.testing.assert_allclose(field(3.0, q, None), jq.rate(q, 3.0 * omega), atol=1e-15)
+
+
+def test_validation_errors():
+    with pytest.raises(ValueError, match="omega"):
+        jq.kinematic_vector_field(jnp.zeros(4))
+    with pytest.raises(ValueError, match="frame"):
+        jq.corrected_vector_field(jnp.zeros(3), 0.1, frame="inertial")
+    with pytest.raises(ValueError, match="frame"):
+        jq.Magnus4(frame="space")
+    # The fields check the state they are given ...
+    term = diffrax.ODETerm(jq.kinematic_vector_field(jnp.ones(3)))
+    with pytest.raises(ValueError, match="`q` must have shape"):
+        diffrax.diffeqsolve(term, jq.LieEuler(), 0.0, 1.0, 0.1, jnp.ones(3))
+    # ... and the solvers theirs, for any term.
+    term = diffrax.ODETerm(lambda t, y, args: y)
+    with pytest.raises(ValueError, match="y0"):
+        diffrax.diffeqsolve(term, jq.LieEuler(), 0.0, 1.0, 0.1, jnp.ones(3))
+    with pytest.raises(ValueError, match="y0"):
+        diffrax.diffeqsolve(term, jq.CF4(), 0.0, 1.0, 0.1, {"q": jq.identity()})
+
+
+# ----------------------------------------------------------------------------------------------------
+# Acceptance 1: corrected field + NormalizedEuler = the seed's scheme = integrate(method="euler")
+
+
+@eqx.filter_jit
+def _seed_scheme(field, q0, h, n, ts):
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(field),
+        jq.NormalizedEuler(),
+        0.0,
+        n * h,
+        h,
+        q0,
+        saveat=diffrax.SaveAt(subs=[diffrax.SubSaveAt(steps=True), diffrax.SubSaveAt(ts=ts)]),
+        max_steps=n,
+    )
+    return sol.ys
+
+
+@pytest.mark.parametrize("frame", ["world", "body"])
+def test_normalized_euler_corrected_field_is_the_seed_scheme(frame):
+    n, h = 24, 0.37
+    q0 = random_unit(jax.random.key(2), (3,))
+    omega = jnp.array([[0.3, -2.0, 1.1], [4.0, 1.0, -0.5], [0.0, 0.0, 0.0]])  # |ω|h up to 1.5 rad
+    ts = jnp.linspace(0.05, n * h - 0.05, 17)
+    steps, dense = _seed_scheme(jq.corrected_vector_field(omega, h, frame=frame), q0, h, n, ts)
+    # Closed form, at the steps and between them (the geodesic dense output is exact here).
+    times = h * jnp.arange(1, n + 1)
+    rot = jq.from_rotvec(times[:, None, None] * omega[None])
+    exact = jq.multiply(rot, q0) if frame == "world" else jq.multiply(q0, rot)
+    assert np.max(angle(steps, exact)) < 1e-13
+    rot = jq.from_rotvec(ts[:, None, None] * omega[None])
+    exact_dense = jq.multiply(rot, q0) if frame == "world" else jq.multiply(q0, rot)
+    assert np.max(angle(dense, exact_dense)) < 1e-13
+    reference = jq.integrate(q0, omega, h, n, frame=frame, method="euler")
+    np.testing.assert_allclose(steps, reference[1:], rtol=0, atol=1e-13)
+
+    # Piecewise-constant sampled ω: exact too, and equal to integrate(method="euler").
+    omegas = 2.0 * jax.random.normal(jax.random.key(3), (n, 3, 3))
+    steps, _ = _seed_scheme(jq.corrected_vector_field(jq.sampled(omegas, h), h, frame=frame), q0, h, n, ts)
+
+    def product(q, omega):
+        rot = jq.from_rotvec(h * omega)
+        q = jq.multiply(rot, q) if frame == "world" else jq.multiply(q, rot)
+        return q, q
+
+    _, exact = jax.lax.scan(product, q0, omegas)
+    assert np.max(angle(steps, exact)) < 1e-13
+    reference = jq.integrate(q0, jq.sampled(omegas, h), h, n, frame=frame, method="euler")
+    np.testing.assert_allclose(steps, reference[1:], rtol=0, atol=1e-13)
+
+
+def test_corrected_field_with_a_general_solver_solves_another_ode():
+    """Tsit5 on the corrected field integrates q̇ = κ·½ω̃q with κ = 2tan(θ/2)/θ: it rotates too fast by
+    (κ − 1)|ω|T (closed form), where the plain field is right to ~1e-10."""
+    omega, h, n = jnp.array([0.0, 0.6, 0.8]), 0.1, 80  # |ω| = 1, θ = 0.1, T = 8
+    q0 = jq.identity()
+
+    def final(field):
+        return diffrax.diffeqsolve(diffrax.ODETerm(field), diffrax.Tsit5(), 0.0, n * h, h, q0).ys[-1]
+
+    exact = jq.from_rotvec(n * h * omega)
+    wrong = float(angle(final(jq.corrected_vector_field(omega, h)), exact))
+    right = float(angle(final(jq.kinematic_vector_field(omega)), exact))
+    theta = h * 1.0
+    predicted = (2.0 * math.tan(theta / 2) / theta - 1.0) * 1.0 * n * h
+    assert abs(wrong - predicted) < 1e-2 * predicted  # 6.7e-3 rad
+    assert right < 1e-9
+    assert 6e-3 < wrong < 7e-3
+
+
+# ----------------------------------------------------------------------------------------------------
+# Acceptance 2 and 4: orders on a closed-form problem, |q| = 1, dense output on the sphere
+
+
+ORDER_STEPS = np.array([12, 24, 48])
+DENSE_TS = jnp.linspace(0.0, T_END, 40)[1:-1] + 0.013  # between steps for every step count
+
+
+def _orders(solver, frame):
+    """Errors at T for each step count, forwards (0 → T) and backwards (T → 0), plus dense output at
+    DENSE_TS (forwards); one compilation (vmap over step size and direction)."""
+    term = diffrax.ODETerm(jq.kinematic_vector_field(Coning(frame), frame=frame))
+
+    @jax.jit
+    @jax.vmap
+    def run(n, backwards):
+        t0 = jnp.where(backwards, T_END, 0.0)
+        t1 = T_END - t0
+        ts = jnp.where(backwards, DENSE_TS[::-1], DENSE_TS)  # in the direction of integration
+        saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(steps=True), diffrax.SubSaveAt(ts=ts)])
+        sol = diffrax.diffeqsolve(
+            term, solver, t0, t1, (t1 - t0) / n, coning_exact(t0), saveat=saveat,
+            max_steps=int(ORDER_STEPS[-1]),
+        )
+        return sol.ys
+
+    num = len(ORDER_STEPS)
+    ns = jnp.asarray(np.concatenate([ORDER_STEPS, ORDER_STEPS]), dtype=jnp.float64)
+    backwards = jnp.arange(2 * num) >= num
+    steps, dense = run(ns, backwards)
+    finals = jnp.stack([steps[i, n - 1] for i, n in enumerate(np.concatenate([ORDER_STEPS] * 2))])
+    all_steps = np.concatenate([np.asarray(steps[i, :n]) for i, n in enumerate(np.concatenate([ORDER_STEPS] * 2))])
+    errors = angle(finals[:num], coning_exact(T_END))
+    errors_back = angle(finals[num:], coning_exact(0.0))
+    dense_errors = np.max(angle(dense[:num], coning_exact(DENSE_TS)), axis=-1)
+    dense_errors_back = np.max(angle(dense[num:], coning_exact(DENSE_TS[::-1])), axis=-1)
+    assert np.all(dense_errors_back < 10.0 * dense_errors + 1e-12)
+    norm_dev = np.max(np.abs(np.linalg.norm(all_steps, axis=-1) - 1.0))
+    dense_norm_dev = np.max(np.abs(np.linalg.norm(np.asarray(dense), axis=-1) - 1.0))
+    hs = T_END / ORDER_STEPS
+    return slope(hs, errors), slope(hs, errors_back), errors, slope(hs, dense_errors), norm_dev, dense_norm_dev
+
+
+@pytest.mark.parametrize(
+    "solver, frame, low, high",
+    [
+        (jq.LieEuler(), "body", 0.95, 1.1),
+        (jq.ExpMidpoint(), "body", 1.95, 2.1),
+        (jq.Magnus4(frame="body"), "body", 3.9, 4.2),
+        (jq.Magnus4(frame="world"), "world", 3.9, 4.2),
+        (jq.Magnus4(frame="world"), "body", 1.9, 2.1),  # wrong frame: order 2
+        (jq.CF4(), "body", 3.9, 4.2),
+        (jq.RKMK45(), "body", 4.8, 5.6),
+    ],
+)
+def test_orders_norm_and_dense_output(solver, frame, low, high):
+    order, order_back, errors, dense_order, norm_dev, dense_norm_dev = _orders(solver, frame)
+    assert low <= order <= high, (order, errors)
+    assert low <= order_back <= high, order_back
+    assert norm_dev <= 1e-14
+    assert dense_norm_dev <= 1e-12
+    if isinstance(solver, jq.RKMK45):
+        assert dense_order >= 3.0, dense_order
+
+
+# ----------------------------------------------------------------------------------------------------
+# Acceptance 3: adaptive RKMK45 against stock Tsit5
+
+
+def _adaptive(term, solver, y0, t1, tol):
+    controller = diffrax.PIDController(rtol=tol, atol=tol)
+    return diffrax.diffeqsolve(term, solver, 0.0, t1, None, y0, stepsize_controller=controller, max_steps=4096)
+
+
+def test_rkmk45_adaptive_coning():
+    term = diffrax.ODETerm(jq.kinematic_vector_field(Coning("body"), frame="body"))
+    t1 = 7.3
+    ours = _adaptive(term, jq.RKMK45(), coning_exact(0.0), t1, 1e-8)
+    stock = _adaptive(term, diffrax.Tsit5(), coning_exact(0.0), t1, 1e-8)
+    assert angle(ours.ys[-1], coning_exact(t1)) <= 1e-7
+    assert int(ours.stats["num_accepted_steps"]) <= int(stock.stats["num_accepted_steps"])
+    assert abs(float(jnp.linalg.norm(ours.ys[-1])) - 1.0) < 1e-14
+
+
+INERTIA = jnp.array([1.0, 2.0, 3.5])
+
+
+def _rigid_body(t, y, args):
+    """Torque-free rigid body: q̇ = ½ q ω̃_b, I ω̇_b = (I ω_b) × ω_b (Euler's equations)."""
+    q, omega = y
+    return jq.rate(q, omega, frame="body"), jnp.cross(INERTIA * omega, omega) / INERTIA
+
+
+def test_rkmk45_adaptive_rigid_body():
+    term = diffrax.ODETerm(_rigid_body)
+    y0 = (jq.from_rotvec(jnp.array([0.3, -0.2, 0.5])), jnp.array([0.5, 1.0, 2.0]))
+    t1 = 9.7
+    reference = _adaptive(term, diffrax.Tsit5(), y0, t1, jnp.asarray(1e-13)).ys
+    ours = _adaptive(term, jq.RKMK45(), y0, t1, 1e-8)
+    stock = _adaptive(term, diffrax.Tsit5(), y0, t1, jnp.asarray(1e-8))
+    assert angle(ours.ys[0][-1], reference[0][-1]) <= 1e-7
+    assert np.max(np.abs(ours.ys[1][-1] - reference[1][-1])) <= 1e-7
+    assert int(ours.stats["num_accepted_steps"]) <= int(stock.stats["num_accepted_steps"])
+    # Energy and |I ω| are conserved by the exact flow; the ω part is Tsit5 itself.
+    energy = lambda w: float(jnp.sum(INERTIA * w * w))  # noqa: E731
+    assert abs(energy(ours.ys[1][-1]) / energy(y0[1]) - 1.0) < 5e-8
+
+
+# ----------------------------------------------------------------------------------------------------
+# Acceptance 5: jit, vmap over 10⁴ bodies, gradients
+
+
+def test_vmap_ten_thousand_bodies():
+    n = 10_000
+    q0 = random_unit(jax.random.key(4), (n,))
+    omega = 3.0 * jax.random.normal(jax.random.key(5), (n, 3))
+
+    @jax.jit
+    @jax.vmap
+    def final(q0, omega):
+        term = diffrax.ODETerm(jq.kinematic_vector_field(omega, frame="body"))
+        return diffrax.diffeqsolve(term, jq.RKMK45(), 0.0, 1.5, 0.25, q0).ys[-1]
+
+    exact = jq.multiply(q0, jq.from_rotvec(1.5 * omega))
+    assert np.max(angle(final(q0, omega), exact)) < 1e-12
+
+
+class Wobble(eqx.Module):
+    """ω(t) = a + b sin(3t): parameters as a PyTree field (so every adjoint sees them)."""
+
+    params: jax.Array
+
+    def __call__(self, t, q):
+        return self.params[:3] + self.params[3:] * jnp.sin(3.0 * t)
+
+
+def _final_loss(params, solver, adjoint):
+    term = diffrax.ODETerm(jq.kinematic_vector_field(Wobble(params)))
+    q0 = jq.from_rotvec(jnp.array([0.2, 0.1, -0.4]))
+    sol = diffrax.diffeqsolve(term, solver, 0.0, 1.7, 0.1, q0, adjoint=adjoint)
+    target = jnp.array([0.5, -0.5, 0.5, 0.5])
+    return jnp.dot(sol.ys[-1], target)
+
+
+PARAMS = jnp.array([0.4, -1.1, 0.8, 0.9, 0.3, -0.6])
+DIRECTION = jnp.array([0.3, -0.7, 0.2, 0.5, 0.1, -0.4])
+_COMPILED = {}
+
+
+def _compiled(solver):
+    """(loss, reverse-mode gradient, forward-mode directional derivative), jitted once per solver."""
+    key = type(solver).__name__
+    if key not in _COMPILED:
+        checkpoint = diffrax.RecursiveCheckpointAdjoint()
+        loss = jax.jit(lambda p: _final_loss(p, solver, checkpoint))
+        grad = jax.jit(jax.grad(lambda p: _final_loss(p, solver, checkpoint)))
+        forward = jax.jit(
+            lambda p, v: jax.jvp(lambda p_: _final_loss(p_, solver, diffrax.ForwardMode()), (p,), (v,))[1]
+        )
+        _COMPILED[key] = (loss, grad, forward)
+    return _COMPILED[key]
+
+
+def _directional_fd(loss, p, v, eps=1e-5):
+    # Fourth-order central difference: truncation ~eps⁴, round-off ~1e-16/eps.
+    f = lambda s: float(loss(p + s * v))  # noqa: E731
+    return (8.0 * (f(eps) - f(-eps)) - (f(2 * eps) - f(-2 * eps))) / (12.0 * eps)
+
+
+@pytest.mark.parametrize("solver", [jq.RKMK45(), jq.LieEuler()])
+def test_gradients_match_finite_differences(solver):
+    loss, grad, forward = _compiled(solver)
+    for p in (PARAMS, jnp.zeros(6)):  # generic, and at rest (series branches; not NaN)
+        fd = _directional_fd(loss, p, DIRECTION)
+        reverse = float(jnp.dot(grad(p), DIRECTION))
+        tangent = float(forward(p, DIRECTION))
+        assert abs(reverse - fd) <= 1e-7 * abs(fd), (reverse, fd)
+        assert abs(tangent - fd) <= 1e-7 * abs(fd), (tangent, fd)
+
+
+def test_backsolve_adjoint():
+    """RK-type solvers run under BacksolveAdjoint (the continuous adjoint: it agrees with the exact
+    discrete gradient to the solver's accuracy); Magnus4 refuses with a message naming the working
+    alternative, which then works."""
+    _, grad, _ = _compiled(jq.RKMK45())
+    exact = grad(PARAMS)
+    backsolve = jax.grad(lambda p: _final_loss(p, jq.RKMK45(), diffrax.BacksolveAdjoint()))(PARAMS)
+    assert np.max(np.abs(backsolve - exact)) <= 1e-6 * np.max(np.abs(exact))
+    with pytest.raises(ValueError, match=r"BacksolveAdjoint\(solver=diffrax\.Tsit5\(\)\)"):
+        jax.grad(lambda p: _final_loss(p, jq.Magnus4(), diffrax.BacksolveAdjoint()))(PARAMS)
+    alternative = jax.grad(
+        lambda p: _final_loss(p, jq.Magnus4(), diffrax.BacksolveAdjoint(solver=diffrax.Tsit5()))
+    )(PARAMS)
+    assert np.max(np.abs(alternative - exact)) <= 1e-4 * np.max(np.abs(exact))
+
+
+# ----------------------------------------------------------------------------------------------------
+# Acceptance 6: float32 stays float32
+
+
+@pytest.mark.parametrize(
+    "solver",
+    [jq.NormalizedEuler(), jq.LieEuler(), jq.ExpMidpoint(), jq.Magnus4(), jq.CF4(), jq.RKMK45()],
+)
+def test_float32_stays_float32(solver):
+    f32 = jnp.float32
+    omega = jnp.array([0.3, -1.0, 0.7], f32)
+
+    def field(t, y, args):
+        q, x = y
+        return jq.rate(q, omega, frame="body"), -x
+
+    y0 = (jq.identity(dtype=f32), jnp.ones(2, f32))
+    ts = jnp.linspace(0.0, 2.0, 7, dtype=f32)
+    controller = (
+        diffrax.PIDController(rtol=1e-5, atol=1e-5) if isinstance(solver, jq.RKMK45) else diffrax.ConstantStepSize()
+    )
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(field), solver, f32(0.0), f32(2.0), f32(0.1), y0,
+        saveat=diffrax.SaveAt(ts=ts), stepsize_controller=controller,
+    )
+    q, x = sol.ys
+    assert q.dtype == f32 and x.dtype == f32
+    assert np.max(np.abs(np.linalg.norm(np.asarray(q, np.float64), axis=-1) - 1.0)) < 1e-6
+    exact = jq.from_rotvec(ts[:, None] * omega[None])
+    assert np.max(angle(q.astype(jnp.float64), exact.astype(jnp.float64))) < 2e-2
