@@ -35,6 +35,7 @@ from jax import lax
 from jaxtyping import Array, ArrayLike
 
 from ._algebra import multiply, normalize
+from ._fastpath import integrate_fast
 from ._kinematics import rate
 from ._numerics import (
     as_float_array,
@@ -56,6 +57,15 @@ ORDERS = {"euler": 1, "midpoint": 2, "magnus4": 4, "cf4": 4, "naive": 1, "rk4": 
 _SQRT3 = math.sqrt(3.0)
 _GAUSS_1 = 0.5 - _SQRT3 / 6.0
 _GAUSS_2 = 0.5 + _SQRT3 / 6.0
+# The stage times t + c·h at which each method calls the field, in call order.
+_STAGE_FRACTIONS = {
+    "euler": (0.0,),
+    "naive": (0.0,),
+    "midpoint": (0.0, 0.5),
+    "magnus4": (_GAUSS_1, _GAUSS_2),
+    "cf4": (0.0, 0.5, 0.5, 1.0),
+    "rk4": (0.0, 0.5, 0.5, 1.0),
+}
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -251,30 +261,48 @@ def _check_count(value, name: str, minimum: int) -> int:
 _PLAIN_SCAN_MAX = 64
 
 
-def _run(step_fn: Callable, kc, n: int, checkpoint: bool, unroll: int):
-    """n steps of (k, carry) -> (k + 1, step_fn(k, carry)), nested and checkpointed for large n."""
+def _leading_split(xs: Any, sizes: tuple[int, ...]) -> Any:
+    """Reshape the leading axis (of length prod(sizes)) of every leaf of `xs` into `sizes`."""
+    if xs is None:
+        return None
+    return jax.tree_util.tree_map(lambda a: a.reshape(sizes + a.shape[1:]), xs)
+
+
+def _leading_slice(xs: Any, start: int, stop: int) -> Any:
+    if xs is None:
+        return None
+    return jax.tree_util.tree_map(lambda a: a[start:stop], xs)
+
+
+def _run(step_fn: Callable, kc, n: int, xs: Any, checkpoint: bool, unroll: int):
+    """n steps of (k, carry) -> (k + 1, step_fn(k, carry[, x])), nested and checkpointed for large n.
+
+    `xs` (or `None`) holds per-step inputs with leading axis n.
+    """
     if n == 0:
         return kc
 
-    def one(kc, _):
+    def one(kc, x):
         k, c = kc
-        return (k + 1, step_fn(k, c)), None
+        c = step_fn(k, c) if xs is None else step_fn(k, c, x)
+        return (k + 1, c), None
 
-    def plain(kc, length):
-        return lax.scan(one, kc, None, length=length, unroll=min(unroll, length))[0]
+    def plain(kc, xs, length):
+        return lax.scan(one, kc, xs, length=length, unroll=min(unroll, length))[0]
 
     if not checkpoint or n <= _PLAIN_SCAN_MAX:
-        return plain(kc, n)
+        return plain(kc, xs, n)
     chunk_len = math.isqrt(n - 1) + 1  # ⌈√n⌉
     num_chunks, tail = divmod(n, chunk_len)
 
     @functools.partial(jax.checkpoint, prevent_cse=False)
-    def chunk(kc, _):
-        return plain(kc, chunk_len), None
+    def chunk(kc, xs_chunk):
+        return plain(kc, xs_chunk, chunk_len), None
 
-    kc = lax.scan(chunk, kc, None, length=num_chunks)[0]
+    head = _leading_split(_leading_slice(xs, 0, num_chunks * chunk_len), (num_chunks, chunk_len))
+    kc = lax.scan(chunk, kc, head, length=num_chunks)[0]
     if tail:
-        kc = plain(kc, tail)
+        kc = plain(kc, _leading_slice(xs, num_chunks * chunk_len, n), tail)
     return kc
 
 
@@ -288,6 +316,7 @@ def scan_steps(
     checkpoint: bool = True,
     output: Callable | None = None,
     unroll: int = 1,
+    xs: Any = None,
 ) -> tuple[Any, Any]:
     """Run `carry -> step_fn(k, carry)` `num_steps` times (k the integer step index, int32) with
     bounded-memory reverse mode.
@@ -307,6 +336,9 @@ def scan_steps(
     - `checkpoint`: use the bounded-memory structure (no cost in forward mode).
     - `output`: optional `output(carry) -> pytree` selecting what is saved (default: the whole carry).
     - `unroll`: unroll factor of the innermost scans.
+    - `xs`: optional per-step inputs, a pytree of arrays with leading axis `num_steps`; then the step is
+      `step_fn(k, carry, xs[k])`. Reverse mode returns their cotangents stacked (O(num_steps)), where a
+      closed-over array indexed by k would accumulate a full-size cotangent on every step.
 
     **Returns:** `(final_carry, saved)`; `saved` has a leading axis of `num_steps // save_every + 1` and
     is `None` for `save="final"`.
@@ -317,7 +349,7 @@ def scan_steps(
     unroll = _check_count(unroll, "unroll", 1)
     k0 = jnp.asarray(0, jnp.int32)
     if save == "final":
-        _, final = _run(step_fn, (k0, carry), num_steps, checkpoint, unroll)
+        _, final = _run(step_fn, (k0, carry), num_steps, xs, checkpoint, unroll)
         return final, None
     if num_steps % save_every:
         raise ValueError(
@@ -327,13 +359,15 @@ def scan_steps(
     if output is None:
         output = lambda c: c  # noqa: E731
 
-    def block(kc, _):
-        kc = _run(step_fn, kc, save_every, checkpoint, unroll)
+    def block(kc, xs_block):
+        kc = _run(step_fn, kc, save_every, xs_block, checkpoint, unroll)
         return kc, output(kc[1])
 
     if checkpoint:
         block = jax.checkpoint(block, prevent_cse=False)
-    (_, final), saved = lax.scan(block, (k0, carry), None, length=num_steps // save_every)
+    num_blocks = num_steps // save_every
+    xs_blocks = _leading_split(xs, (num_blocks, save_every))
+    (_, final), saved = lax.scan(block, (k0, carry), xs_blocks, length=num_blocks)
     saved = jax.tree_util.tree_map(
         lambda first, rest: jnp.concatenate([jnp.asarray(first)[None], rest], axis=0),
         output(carry),
@@ -392,9 +426,30 @@ def sampled(omegas: ArrayLike, dt: ArrayLike, *, t0: ArrayLike = 0.0) -> Sampled
         raise ValueError(
             f"`omegas` must be time-major with shape (T, ..., 3), T >= 1; got {tuple(omegas.shape)}."
         )
-    dt = _check_scalar(dt, "dt")
-    t0 = _check_scalar(t0, "t0")
+    # Python numbers are kept as given: `integrate` can then tell, even under `jit`, that the samples lie
+    # on its grid (they carry no gradient anyway). Arrays are used as arrays.
+    dt = dt if _is_number(dt) else _check_scalar(dt, "dt")
+    t0 = t0 if _is_number(t0) else _check_scalar(t0, "t0")
     return Sampled(omegas, dt, t0)
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool)
+
+
+def _same_value(a: Array, b: Array, scale: Array) -> bool:
+    """Whether two concrete scalars agree to a few ulp of the coarser dtype (False for tracers)."""
+    try:
+        a_value, b_value, scale_value = float(a), float(b), abs(float(scale))
+    except (TypeError, jax.errors.ConcretizationTypeError):
+        return False
+    eps = max(_eps_of(a), _eps_of(b))
+    return abs(a_value - b_value) <= 8.0 * eps * max(abs(a_value), abs(b_value), scale_value)
+
+
+def _eps_of(x) -> float:
+    dtype = x.dtype if hasattr(x, "dtype") else np.float64
+    return float(np.finfo(dtype).eps)
 
 
 def _check_scalar(x: ArrayLike, name: str) -> Array:
@@ -522,6 +577,7 @@ def integrate(
             f"`save_every` must divide `num_steps`; got save_every={save_every}, num_steps={num_steps}."
         )
     q0 = check_trailing(q0, 4, "q0")
+    dt_given, t0_given = dt, t0
     dt = _check_scalar(dt, "dt")
     t0 = _check_scalar(t0, "t0")
     if compensated is None:
@@ -532,11 +588,39 @@ def integrate(
         )
     if not callable(omega):
         omega = check_trailing(omega, 3, "omega")
+    # Samples on the integration grid (same dt and t0, known before tracing) are fed to the scan as
+    # per-step inputs: reverse mode then costs O(num_steps) instead of a full-size scatter per step.
+    aligned = (
+        isinstance(omega, Sampled)
+        and _same_value(omega.dt, dt_given, dt_given)
+        and _same_value(omega.t0, t0_given, dt_given)
+    )
+    if isinstance(omega, Sampled):
+        omega = Sampled(omega.omegas, _check_scalar(omega.dt, "dt"), _check_scalar(omega.t0, "t0"))
+    # Lie–Euler with a constant or sampled ω takes the restructured loop of `_fastpath` (issue 8).
+    fast = integrate_fast(
+        q0,
+        omega,
+        dt,
+        t0,
+        num_steps=num_steps,
+        frame=frame,
+        method=method,
+        save=save,
+        save_every=save_every,
+        compensated=bool(compensated),
+        renormalize_every=renormalize_every,
+        checkpoint=bool(checkpoint),
+        unroll=unroll,
+    )
+    if fast is not None:
+        return fast
     return _integrate(
         q0,
         omega,
         dt,
         t0,
+        aligned=aligned,
         num_steps=num_steps,
         frame=frame,
         method=method,
@@ -556,6 +640,7 @@ def _integrate(
     dt,
     t0,
     *,
+    aligned,
     num_steps,
     frame,
     method,
@@ -594,6 +679,15 @@ def _integrate(
     def field(t, q, x):
         return source(t, q), None
 
+    xs = None
+    if aligned:
+        # Step k holds sample k on [t_k, t_{k+1}); a stage at the step end (c = 1) sees sample k + 1,
+        # exactly as the time lookup of `Sampled.__call__` would; beyond the last sample it is held.
+        rows = omega.omegas.astype(state_dtype)
+        index = np.minimum(np.arange(num_steps + 1), rows.shape[0] - 1)
+        fractions = _STAGE_FRACTIONS[method]
+        xs = (rows[index[:-1]], rows[index[1:]] if 1.0 in fractions else None)
+
     lie = method in LIE_METHODS
     renormalize = lie and renormalize_every is not None
 
@@ -604,11 +698,21 @@ def _integrate(
         due = (k + 1) % renormalize_every == 0
         return jnp.where(due, normalize(q), q), due
 
+    def step_field(x):
+        if x is None:
+            return field
+        calls = iter(_STAGE_FRACTIONS[method])
+
+        def sample_field(t, q, _):
+            return (x[1] if next(calls) == 1.0 else x[0]), None
+
+        return sample_field
+
     if compensated:
 
-        def step_fn(k, carry):
+        def step_fn(k, carry, x=None):
             q, c = carry
-            q, c = _compensated_step(method, field, time(k), q, c, dt, frame)
+            q, c = _compensated_step(method, step_field(x), time(k), q, c, dt, frame)
             if renormalize:
                 q, due = renormalized(k, q)
                 c = jnp.where(due, jnp.zeros_like(c), c)
@@ -618,8 +722,8 @@ def _integrate(
         output = lambda carry: carry[0]  # noqa: E731
     else:
 
-        def step_fn(k, q):
-            q, _ = lie_step(method, field, time(k), q, None, dt, frame=frame)
+        def step_fn(k, q, x=None):
+            q, _ = lie_step(method, step_field(x), time(k), q, None, dt, frame=frame)
             if renormalize:
                 q, _ = renormalized(k, q)
             return q
@@ -636,6 +740,7 @@ def _integrate(
         checkpoint=checkpoint,
         output=output,
         unroll=unroll,
+        xs=xs,
     )
     if save == "final":
         return final[0] if compensated else final
