@@ -419,6 +419,12 @@ def sampled(omegas: ArrayLike, dt: ArrayLike, *, t0: ArrayLike = 0.0) -> Sampled
     - `dt`: the sampling interval (scalar, > 0).
     - `t0`: the time of the first sample.
 
+    **Reverse mode.** When `integrate` runs on the sampling grid (its `dt` and `t0` equal these, as
+    Python numbers or concrete arrays), the samples are scanned over as per-step inputs and the gradient
+    w.r.t. `omegas` costs O(T). Otherwise each step looks its sample up by time, and reverse mode adds a
+    full-size cotangent per step (O(T²) for long runs) — sample on the integration grid when you
+    differentiate long runs.
+
     **Returns:** a `Sampled` module, `Sampled(t, q) -> omegas[k]`.
     """
     omegas = check_trailing(omegas, 3, "omegas")
