@@ -1,6 +1,7 @@
 r"""Fitting angular velocity (and a torque-free body's inertia) to observed orientations.
 
-The fits are nonlinear least squares solved by `optimistix` (Levenberg–Marquardt by default) through
+The fits are nonlinear least squares solved by `optimistix` (Levenberg–Marquardt, then a few
+Gauss–Newton steps that reach the optimum to round-off) through
 the forward models of the lower layers: the closed-form exponential for constant ω (`step`), the
 fixed-step integrators for time-varying ω (`integrate`), and `simulate_rigid_body` for a torque-free
 body. Every fit finds its own starting point from the log-differences of neighbouring observations
@@ -67,8 +68,8 @@ class AngularVelocityFit(eqx.Module):
     - `fitted`: the model orientations at the observation times, shape `(T, 4)`.
     - `residual_angles`: geodesic angle in [0, π] between model and observation, shape `(T,)` (rad).
     - `loss`: the final objective ½ Σₖ wₖ |ρₖ|² (`optimistix`'s convention; see the module docstring).
-    - `num_steps`: the number of solver steps taken.
-    - `converged`: whether the solver met its tolerances within `max_steps`.
+    - `num_steps`: the number of solver steps taken (Levenberg–Marquardt plus the Gauss–Newton polish).
+    - `converged`: whether the solver (or the polish after it) met its tolerances within its step limit.
     - `frame`, `model`: the options the fit was made with (static).
     """
 
@@ -156,14 +157,16 @@ def _check_observations(times: ArrayLike, qs: ArrayLike, weights: ArrayLike | No
                 f"`weights` must have shape ({num_obs},) to match `qs` {tuple(qs.shape)}; "
                 f"got shape {tuple(weights.shape)}."
             )
+        if not is_tracer(weights) and np.any(np.asarray(weights) < 0):
+            raise ValueError(f"`weights` must be non-negative; got minimum {np.min(weights)}.")
         sqrt_weights = jnp.sqrt(weights.astype(dtype))
     return times, normalize(qs), sqrt_weights
 
 
-def _check_substeps(substeps) -> int:
-    if isinstance(substeps, bool) or not isinstance(substeps, (int, np.integer)) or substeps < 1:
-        raise ValueError(f"`substeps` must be a positive int; got {substeps!r}.")
-    return int(substeps)
+def _check_count(value, name: str, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"`{name}` must be an int >= {minimum}; got {value!r}.")
+    return int(value)
 
 
 def _interval_rates(qs: Array, tau: Array, frame: str) -> tuple[Array, Array]:
@@ -256,7 +259,19 @@ class AngularVelocityCurve(eqx.Module):
 
     @classmethod
     def through(cls, knots: Array, values: Array, kind: str) -> AngularVelocityCurve:
-        """The curve of `kind` through `values` `(K, C)` at `knots` `(K,)` (any number C of channels)."""
+        """The curve of `kind` through `values` `(K, C)` at `knots` `(K,)` (any number C of channels).
+
+        K ≥ 2 for `"piecewise_linear"`, K ≥ 4 for `"spline"`; `knots` must be increasing (not checked).
+        """
+        kind = check_choice(kind, _MODELS[1:], "kind")
+        knots = as_float_array(knots, "knots")
+        values = as_float_array(values, "values")
+        minimum = 4 if kind == "spline" else 2
+        if knots.ndim != 1 or knots.shape[0] < minimum or values.shape[:1] != knots.shape:
+            raise ValueError(
+                f"`knots` must have shape (K,) with K >= {minimum} for kind={kind!r} and `values` "
+                f"shape (K, C); got {tuple(knots.shape)} and {tuple(values.shape)}."
+            )
         if kind == "spline":
             second = _not_a_knot_second_derivatives(knots, values)
         else:
@@ -424,10 +439,11 @@ def fit_angular_velocity(
 
     Example:
     ```python
+    omega_true = jnp.array([0.3, -0.5, 0.8])
     times = jnp.linspace(0.0, 10.0, 200)
-    qs = jaxquat.step(q0, omega_true, times)  # constant ω, exact observations
+    qs = jaxquat.step(jaxquat.identity(), omega_true, times)  # exact observations, 1.6 turns
     fit = jaxquat.fit_angular_velocity(times, qs)
-    assert jnp.allclose(fit.omega, omega_true, atol=1e-10)
+    assert jnp.allclose(fit.omega, omega_true, atol=1e-10)  # float64 (x64 on)
     ```
     """
     model = check_choice(model, _MODELS, "model")
@@ -453,7 +469,7 @@ def fit_angular_velocity(
             expected = " or ".join(str(s) for s in value_shapes)
             raise ValueError(f"`omega0` must have shape {expected}; got {tuple(omega0.shape)}.")
         omega0 = jnp.broadcast_to(omega0, value_shapes[-1])
-    substeps = _check_substeps(substeps)
+    substeps = _check_count(substeps, "substeps", 1)
     if solver is None:
         solver = _default_solver(dtype)
     return _fit(
@@ -466,8 +482,8 @@ def fit_angular_velocity(
         frame=frame,
         substeps=substeps,
         solver=solver,
-        max_steps=int(max_steps),
-        polish=int(polish),
+        max_steps=_check_count(max_steps, "max_steps", 1),
+        polish=_check_count(polish, "polish", 0),
     )
 
 
@@ -687,7 +703,7 @@ def fit_rigid_body(
         inertia0 = inertia_start if inertia0 is None else inertia0
         omega0 = omega_start if omega0 is None else omega0
     method = check_choice(method, ("cf4", "midpoint", "euler", "rk4", "naive"), "method")
-    substeps = _check_substeps(substeps)
+    substeps = _check_count(substeps, "substeps", 1)
     if solver is None:
         solver = _default_solver(dtype)
     return _fit_rigid_body(
@@ -699,8 +715,8 @@ def fit_rigid_body(
         method=method,
         substeps=substeps,
         solver=solver,
-        max_steps=int(max_steps),
-        polish=int(polish),
+        max_steps=_check_count(max_steps, "max_steps", 1),
+        polish=_check_count(polish, "polish", 0),
     )
 
 
