@@ -30,7 +30,6 @@ from typing import Any, ClassVar
 
 import diffrax
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 from jax import lax
@@ -148,7 +147,9 @@ def kinematic_vector_field(omega, *, frame: str = "world") -> Callable[[Any, Arr
     return _make_field(omega, None, frame)
 
 
-def corrected_vector_field(omega, dt, *, frame: str = "world") -> Callable[[Any, Array, Any], Array]:
+def corrected_vector_field(
+    omega, dt, *, frame: str = "world"
+) -> Callable[[Any, Array, Any], Array]:
     r"""The seed's corrected rate $\dot q_{Δt} = \frac{\tan(|ω|Δt/2)}{|ω|Δt}\,\tilde ω q$ as a vector field.
 
     Equation quatRateOfChangeCorrected of seed `000_2989197062956dde.txt`. One Euler step of size
@@ -161,10 +162,10 @@ def corrected_vector_field(omega, dt, *, frame: str = "world") -> Callable[[Any,
 
         This field is *not* the kinematics: it is the plain rate scaled by
         $\frac{2\tan(θ/2)}{θ} = 1 + θ^2/12 + …$, $θ = |ω|Δt$. Any solver other than `NormalizedEuler` with
-        step `dt` integrates that different ODE: with `diffrax.Tsit5` at step `dt` the result rotates
-        too fast by ≈ $θ^2/12$ relative (6.7e-3 rad after 10 s at |ω| = 2, Δt = 0.05, where
-        `kinematic_vector_field` gives 5e-10); jaxquat's Lie-group solvers likewise. Use
-        `kinematic_vector_field` for everything else.
+        step `dt` integrates that different ODE faithfully and so rotates too fast by
+        $(κ − 1)|ω|T ≈ θ^2|ω|T/12$: with `diffrax.Tsit5` at |ω| = 1 rad/s, Δt = 0.1 s, T = 8 s the error
+        is 6.7e-3 rad, where `kinematic_vector_field` gives 3e-11 (measured; jaxquat's Lie-group solvers
+        likewise). Use `kinematic_vector_field` for everything else.
 
     **Arguments:**
 
@@ -222,7 +223,7 @@ def _leaves(tree, treedef):
 def _lin(coeffs, arrays, base=None):
     """base + Σ c_j a_j over Python-float coefficients (zero terms skipped, dtype kept)."""
     out = base
-    for c, a in zip(coeffs, arrays):
+    for c, a in zip(coeffs, arrays, strict=True):
         if c == 0.0:
             continue
         term = a if c == 1.0 else c * a
@@ -339,7 +340,9 @@ class LieCubicInterpolation(diffrax.AbstractLocalInterpolation):
         q0 = leaves[0]
         v = _polyeval(coeffs[0], s.astype(coeffs[0].dtype))
         q = multiply(from_rotvec(v), q0)
-        xs = [x + _polyeval(c, s.astype(c.dtype)) for x, c in zip(leaves[1:], coeffs[1:])]
+        xs = [
+            x + _polyeval(c, s.astype(c.dtype)) for x, c in zip(leaves[1:], coeffs[1:], strict=True)
+        ]
         return _join(treedef, q, xs)
 
 
@@ -411,7 +414,7 @@ class _RKMK(diffrax.AbstractSolver):
         big_k = [u0]  # dexp⁻¹-corrected stage increments in the Lie algebra
         small_k = [dxs]  # stage increments of the other leaves
         q_stage, x_stage = q0, x0
-        for row, ci in zip(tab.a, tab.c[1:]):
+        for row, ci in zip(tab.a, tab.c[1:], strict=True):
             big_u = _lin(row, big_k)
             q_stage = _exp_stage(big_u, q0)
             x_stage = _lin_leaves(row, small_k, x0)
@@ -441,7 +444,9 @@ class _RKMK(diffrax.AbstractSolver):
             err_q = multiply(from_vector(0.5 * _lin(tab.b_error, big_k)), q1)
             y_error = _join(treedef, err_q, err_x)
         qc = _hermite(big_u1, u0, k_end)
-        xcs = [_hermite(b - a, k0, k1) for a, b, k0, k1 in zip(x0, x1, small_k[0], dx_end)]
+        xcs = [
+            _hermite(b - a, k0, k1) for a, b, k0, k1 in zip(x0, x1, small_k[0], dx_end, strict=True)
+        ]
         dense_info = _dense_info(y0, treedef, qc, xcs)
         return y1, y_error, dense_info, f_end, diffrax.RESULTS.successful
 
@@ -491,12 +496,16 @@ class RKMK45(_RKMK, diffrax.AbstractAdaptiveSolver):
     With $u_i$ the stage rotation vectors recovered from the term's $\dot q$ and
     $K_i = \mathrm{dexp}^{-1}_{U_i}(u_i)$, $U_i = \sum_j a_{ij} K_j$, the stages are
     $Q_i = \exp(U_i) ⊗ q_n$ and $q_{n+1} = \exp(\sum_i b_i K_i) ⊗ q_n$: Tsit5 applied to the ODE of the
-    rotation vector in the Lie algebra (Munthe-Kaas 1999), so $|q| = |q_0|$ to round-off and constant ω
-    is integrated exactly. Other leaves of a tuple state `(q, x)` are integrated by Tsit5 itself.
+    rotation vector in the Lie algebra (Munthe-Kaas 1999; dexp⁻¹ by its series through $\mathrm{ad}^4$),
+    so $|q| = 1$ to round-off (the step result is renormalised) and constant ω is integrated exactly.
+    Other leaves of a tuple state `(q, x)` are integrated by Tsit5 itself.
 
-    The error estimate for the quaternion is $(0, δU) ⊗ q_{n+1}$, $δU = \sum_i (b_i − \hat b_i) K_i$:
-    its norm is the angle in radians between the 5th- and 4th-order solutions, so
-    `diffrax.PIDController(rtol, atol)` controls the attitude error in radians (other leaves as usual).
+    The error estimate for the quaternion is $\tfrac12(0, δU) ⊗ q_{n+1}$, $δU = \sum_i (b_i − \hat b_i) K_i$:
+    to leading order the 4-vector difference of the 5th- and 4th-order solutions, whose norm is their
+    geodesic distance on the unit sphere $S^3$ in radians (half the rotation angle between them). So
+    `diffrax.PIDController(rtol, atol)` means for the quaternion what it means for a stock solver on the
+    same state (other leaves as usual). Measured at rtol = atol = 1e-8: coning 77 accepted steps (Tsit5
+    95), torque-free rigid body 194 (Tsit5 195), attitude error ≈ 3e-8 … 7e-8 rad.
     Six vector-field evaluations per step (FSAL). Dense output: Lie-algebra cubic Hermite
     ($|q| = 1$ to round-off between steps; the interpolant is third order, its error $O(h^4)$).
 
@@ -570,7 +579,7 @@ class CF4(diffrax.AbstractSolver):
         big_u1 = _rotvec_between(q0, q1)
         k_end = _dexpinv(big_u1, _increment(dq, q1))
         qc = _hermite(big_u1, u1, k_end)
-        xcs = [_hermite(b - a, s0, s1) for a, b, s0, s1 in zip(x0, x1, k1, dx_end)]
+        xcs = [_hermite(b - a, s0, s1) for a, b, s0, s1 in zip(x0, x1, k1, dx_end, strict=True)]
         y1 = _join(treedef, q1, x1)
         return y1, None, _dense_info(y0, treedef, qc, xcs), f_end, diffrax.RESULTS.successful
 
@@ -705,9 +714,8 @@ class NormalizedEuler(diffrax.AbstractSolver):
         dq, dxs = _apply_control(terms, terms.vf(t0, y0, args), control, treedef)
         p = q0 + dq
         q1 = p / jnp.sqrt(sum_squares(p, keepdims=True))
-        x1 = [x + d for x, d in zip(x0, dxs)]
+        x1 = [x + d for x, d in zip(x0, dxs, strict=True)]
         qc = _linear(_rotvec_between(q0, q1))
         xcs = [_linear(d) for d in dxs]
         y1 = _join(treedef, q1, x1)
         return y1, None, _dense_info(y0, treedef, qc, xcs), None, diffrax.RESULTS.successful
-

@@ -15,10 +15,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import random_unit
 
 import jaxquat as jq
-
-from helpers import random_unit
 
 SPIN, TILT, PRECESS = 1.3, 0.7, 2.1
 T_END = 2.3  # not a whole number of periods: odd-order error terms stay visible
@@ -69,9 +68,14 @@ def test_vector_fields_are_the_rates():
     for frame in ("world", "body"):
         plain = jq.kinematic_vector_field(omega, frame=frame)
         corrected = jq.corrected_vector_field(omega, 0.3, frame=frame)
-        np.testing.assert_allclose(plain(0.0, q, None), jq.rate(q, omega, frame=frame), rtol=0, atol=1e-15)
         np.testing.assert_allclose(
-            corrected(0.0, q, None), jq.corrected_rate(q, omega, 0.3, frame=frame), rtol=0, atol=1e-15
+            plain(0.0, q, None), jq.rate(q, omega, frame=frame), rtol=0, atol=1e-15
+        )
+        np.testing.assert_allclose(
+            corrected(0.0, q, None),
+            jq.corrected_rate(q, omega, 0.3, frame=frame),
+            rtol=0,
+            atol=1e-15,
         )
     # Callables: omega(t, q) and omega(t, q, args) (then diffeqsolve's args are passed).
     field = jq.kinematic_vector_field(lambda t, q, args: args * omega)
@@ -138,7 +142,9 @@ def test_normalized_euler_corrected_field_is_the_seed_scheme(frame):
 
     # Piecewise-constant sampled ω: exact too, and equal to integrate(method="euler").
     omegas = 2.0 * jax.random.normal(jax.random.key(3), (n, 3, 3))
-    steps, _ = _seed_scheme(jq.corrected_vector_field(jq.sampled(omegas, h), h, frame=frame), q0, h, n, ts)
+    steps, _ = _seed_scheme(
+        jq.corrected_vector_field(jq.sampled(omegas, h), h, frame=frame), q0, h, n, ts
+    )
 
     def product(q, omega):
         rot = jq.from_rotvec(h * omega)
@@ -158,7 +164,9 @@ def test_corrected_field_with_a_general_solver_solves_another_ode():
     q0 = jq.identity()
 
     def final(field):
-        return diffrax.diffeqsolve(diffrax.ODETerm(field), diffrax.Tsit5(), 0.0, n * h, h, q0).ys[-1]
+        return diffrax.diffeqsolve(diffrax.ODETerm(field), diffrax.Tsit5(), 0.0, n * h, h, q0).ys[
+            -1
+        ]
 
     exact = jq.from_rotvec(n * h * omega)
     wrong = float(angle(final(jq.corrected_vector_field(omega, h)), exact))
@@ -191,7 +199,13 @@ def _orders(solver, frame):
         ts = jnp.where(backwards, DENSE_TS[::-1], DENSE_TS)  # in the direction of integration
         saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(steps=True), diffrax.SubSaveAt(ts=ts)])
         sol = diffrax.diffeqsolve(
-            term, solver, t0, t1, (t1 - t0) / n, coning_exact(t0), saveat=saveat,
+            term,
+            solver,
+            t0,
+            t1,
+            (t1 - t0) / n,
+            coning_exact(t0),
+            saveat=saveat,
             max_steps=int(ORDER_STEPS[-1]),
         )
         return sol.ys
@@ -201,7 +215,9 @@ def _orders(solver, frame):
     backwards = jnp.arange(2 * num) >= num
     steps, dense = run(ns, backwards)
     finals = jnp.stack([steps[i, n - 1] for i, n in enumerate(np.concatenate([ORDER_STEPS] * 2))])
-    all_steps = np.concatenate([np.asarray(steps[i, :n]) for i, n in enumerate(np.concatenate([ORDER_STEPS] * 2))])
+    all_steps = np.concatenate(
+        [np.asarray(steps[i, :n]) for i, n in enumerate(np.concatenate([ORDER_STEPS] * 2))]
+    )
     errors = angle(finals[:num], coning_exact(T_END))
     errors_back = angle(finals[num:], coning_exact(0.0))
     dense_errors = np.max(angle(dense[:num], coning_exact(DENSE_TS)), axis=-1)
@@ -210,7 +226,14 @@ def _orders(solver, frame):
     norm_dev = np.max(np.abs(np.linalg.norm(all_steps, axis=-1) - 1.0))
     dense_norm_dev = np.max(np.abs(np.linalg.norm(np.asarray(dense), axis=-1) - 1.0))
     hs = T_END / ORDER_STEPS
-    return slope(hs, errors), slope(hs, errors_back), errors, slope(hs, dense_errors), norm_dev, dense_norm_dev
+    return (
+        slope(hs, errors),
+        slope(hs, errors_back),
+        errors,
+        slope(hs, dense_errors),
+        norm_dev,
+        dense_norm_dev,
+    )
 
 
 @pytest.mark.parametrize(
@@ -241,7 +264,9 @@ def test_orders_norm_and_dense_output(solver, frame, low, high):
 
 def _adaptive(term, solver, y0, t1, tol):
     controller = diffrax.PIDController(rtol=tol, atol=tol)
-    return diffrax.diffeqsolve(term, solver, 0.0, t1, None, y0, stepsize_controller=controller, max_steps=4096)
+    return diffrax.diffeqsolve(
+        term, solver, 0.0, t1, None, y0, stepsize_controller=controller, max_steps=4096
+    )
 
 
 def test_rkmk45_adaptive_coning():
@@ -327,7 +352,9 @@ def _compiled(solver):
         loss = jax.jit(lambda p: _final_loss(p, solver, checkpoint))
         grad = jax.jit(jax.grad(lambda p: _final_loss(p, solver, checkpoint)))
         forward = jax.jit(
-            lambda p, v: jax.jvp(lambda p_: _final_loss(p_, solver, diffrax.ForwardMode()), (p,), (v,))[1]
+            lambda p, v: jax.jvp(
+                lambda p_: _final_loss(p_, solver, diffrax.ForwardMode()), (p,), (v,)
+            )[1]
         )
         _COMPILED[key] = (loss, grad, forward)
     return _COMPILED[key]
@@ -385,11 +412,19 @@ def test_float32_stays_float32(solver):
     y0 = (jq.identity(dtype=f32), jnp.ones(2, f32))
     ts = jnp.linspace(0.0, 2.0, 7, dtype=f32)
     controller = (
-        diffrax.PIDController(rtol=1e-5, atol=1e-5) if isinstance(solver, jq.RKMK45) else diffrax.ConstantStepSize()
+        diffrax.PIDController(rtol=1e-5, atol=1e-5)
+        if isinstance(solver, jq.RKMK45)
+        else diffrax.ConstantStepSize()
     )
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(field), solver, f32(0.0), f32(2.0), f32(0.1), y0,
-        saveat=diffrax.SaveAt(ts=ts), stepsize_controller=controller,
+        diffrax.ODETerm(field),
+        solver,
+        f32(0.0),
+        f32(2.0),
+        f32(0.1),
+        y0,
+        saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=controller,
     )
     q, x = sol.ys
     assert q.dtype == f32 and x.dtype == f32
