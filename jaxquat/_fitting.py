@@ -169,10 +169,23 @@ def _check_count(value, name: str, minimum: int) -> int:
     return int(value)
 
 
-def _interval_rates(qs: Array, tau: Array, frame: str) -> tuple[Array, Array]:
-    """Log-differences of neighbouring observations: (ω per interval `(T-1, 3)`, interval lengths)."""
-    dtau = jnp.diff(tau)
-    return angular_velocity(qs, dtau, frame=frame), dtau
+def _relative_times(times: Array, dtype) -> Array:
+    """t − t₀, subtracted in the dtype of `times` (float64 for float32 data, say), then cast."""
+    return (times - times[0]).astype(dtype)
+
+
+def _interval_rates(times: Array, qs: Array, frame: str) -> tuple[Array, Array]:
+    """Log-differences of neighbouring observations: (ω per interval `(T-1, 3)`, relative times)."""
+    tau = _relative_times(times, qs.dtype)
+    return angular_velocity(qs, jnp.diff(tau), frame=frame), tau
+
+
+def _solver_options(solver, dtype, max_steps, polish) -> dict:
+    return dict(
+        solver=_default_solver(dtype) if solver is None else solver,
+        max_steps=_check_count(max_steps, "max_steps", 1),
+        polish=_check_count(polish, "polish", 0),
+    )
 
 
 def _solve(residual_fn, y0, args, solver, max_steps: int, polish: int):
@@ -469,9 +482,6 @@ def fit_angular_velocity(
             expected = " or ".join(str(s) for s in value_shapes)
             raise ValueError(f"`omega0` must have shape {expected}; got {tuple(omega0.shape)}.")
         omega0 = jnp.broadcast_to(omega0, value_shapes[-1])
-    substeps = _check_count(substeps, "substeps", 1)
-    if solver is None:
-        solver = _default_solver(dtype)
     return _fit(
         times,
         observed,
@@ -480,10 +490,8 @@ def fit_angular_velocity(
         omega0,
         model=model,
         frame=frame,
-        substeps=substeps,
-        solver=solver,
-        max_steps=_check_count(max_steps, "max_steps", 1),
-        polish=_check_count(polish, "polish", 0),
+        substeps=_check_count(substeps, "substeps", 1),
+        **_solver_options(solver, dtype, max_steps, polish),
     )
 
 
@@ -493,14 +501,12 @@ def _start(times, observed, knots, *, model, frame):
 
     Jitted on its own, so that fits with and without a user's `omega0` share one compiled solver.
     """
-    dtype = observed.dtype
-    tau = (times - times[0]).astype(dtype)
-    rates, dtau = _interval_rates(observed, tau, frame)
+    rates, tau = _interval_rates(times, observed, frame)
     if model == "constant":
-        return jnp.sum(rates * dtau[:, None], axis=0) / tau[-1]
+        return jnp.sum(rates * jnp.diff(tau)[:, None], axis=0) / tau[-1]
     # The curve is linear in its values: its basis functions are the curve through I_K.
     midpoints = times[:-1] + 0.5 * (times[1:] - times[:-1])
-    basis = AngularVelocityCurve.through(knots, jnp.eye(knots.shape[0], dtype=dtype), model)
+    basis = AngularVelocityCurve.through(knots, jnp.eye(knots.shape[0], dtype=rates.dtype), model)
     return jnp.linalg.lstsq(basis(midpoints), rates)[0]
 
 
@@ -526,8 +532,7 @@ def _fit(
     polish,
 ):
     dtype = observed.dtype
-    # Relative times: subtract the origin in the dtype of `times` (float64 for float32 data, say).
-    tau = (times - times[0]).astype(dtype)
+    tau = _relative_times(times, dtype)
     reference = observed[0]
     delta0 = jnp.zeros((3,), dtype)
     if model == "constant":
@@ -703,9 +708,6 @@ def fit_rigid_body(
         inertia0 = inertia_start if inertia0 is None else inertia0
         omega0 = omega_start if omega0 is None else omega0
     method = check_choice(method, ("cf4", "midpoint", "euler", "rk4", "naive"), "method")
-    substeps = _check_count(substeps, "substeps", 1)
-    if solver is None:
-        solver = _default_solver(dtype)
     return _fit_rigid_body(
         times,
         observed,
@@ -713,19 +715,16 @@ def fit_rigid_body(
         inertia0,
         omega0,
         method=method,
-        substeps=substeps,
-        solver=solver,
-        max_steps=_check_count(max_steps, "max_steps", 1),
-        polish=_check_count(polish, "polish", 0),
+        substeps=_check_count(substeps, "substeps", 1),
+        **_solver_options(solver, dtype, max_steps, polish),
     )
 
 
 @eqx.filter_jit
 def _rigid_body_start(times, observed):
     """Starting (principal moments, body ω at t0) from log-differences and the equation error."""
-    tau = (times - times[0]).astype(observed.dtype)
-    rates, dtau = _interval_rates(observed, tau, "body")
-    midpoints = tau[:-1] + 0.5 * dtau
+    rates, tau = _interval_rates(times, observed, "body")
+    midpoints = 0.5 * (tau[:-1] + tau[1:])
     # Extrapolate the first two interval rates (held at their midpoints) back to t0.
     slope = (rates[1] - rates[0]) / (midpoints[1] - midpoints[0])
     return _equation_error_inertia(rates, midpoints), rates[0] - midpoints[0] * slope
