@@ -91,17 +91,19 @@ PRESETS: dict[str, Preset] = {
         sample_seconds=0.002,
     ),
     "quick": Preset(
-        sizes=(1000, 100_000),
+        sizes=(100_000,),
         num_steps=1000,
         dtypes=("float64",),
         repeats=3,
-        budget=0.6,
+        budget=0.5,
         workloads=("W1", "W2", "W3", "W4", "W5"),
-        w4_steps=(64, 256, 1024, 4096),
-        w4_tolerances=(1e-6, 1e-8, 1e-10, 1e-12),
+        w4_steps=(64, 256, 1024),
+        w4_tolerances=(1e-6, 1e-9, 1e-12),
         w4_repeats=3,
         w5_sizes=(1000,),
         reference=False,
+        w4_methods=("euler", "midpoint", "magnus4", "cf4"),
+        w4_solvers=("Magnus4", "RKMK45"),
     ),
     "full": Preset(
         sizes=(1, 1000, 100_000),
@@ -625,12 +627,20 @@ def run_row(problem: Problem, preset: Preset, log: Callable[[str], None]) -> dic
             steps = T
             if contender.role == "peer" and (not contender.is_jax or N * T > 10**6):
                 # A pilot on a few steps estimates the cost; slow peers are timed on fewer steps.
-                pilot_steps = min(T, 10 if contender.is_jax else 3)
-                pilot = contender.make(problem, pilot_steps)
-                pilot_seconds = min(_timed(pilot.run)[0] for _ in range(2))
-                estimate = pilot_seconds * T / pilot_steps
-                if estimate > preset.budget:
-                    steps = max(pilot_steps, int(T * preset.budget / estimate))
+                # Two pilot lengths separate the per-call set-up from the cost per step, so a
+                # peer with an expensive set-up is not timed on too few steps (which would
+                # understate its rate).
+                short = min(T, 10 if contender.is_jax else 3)
+                long = min(T, 3 * short)
+                pilots = {}
+                for pilot_steps in sorted({short, long}):
+                    pilot = contender.make(problem, pilot_steps)
+                    pilots[pilot_steps] = min(_timed(pilot.run)[0] for _ in range(2))
+                per_step = (pilots[long] - pilots[short]) / max(long - short, 1)
+                per_step = max(per_step, pilots[long] / long / 10)
+                setup = max(pilots[short] - short * per_step, 0.0)
+                if setup + T * per_step > preset.budget:
+                    steps = min(T, max(long, int((preset.budget - setup) / per_step)))
             runner = contender.make(problem, steps)
             seconds, out = _timed(runner.run)
             error, norm_error = _check(problem, steps, out)
@@ -1375,6 +1385,10 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--dtypes", help="comma-separated: float64,float32")
     parser.add_argument("--steps", type=int, help="number of steps T")
     parser.add_argument("--repeats", type=int, help="timing rounds per row")
+    parser.add_argument("--w5-sizes", help="comma-separated numbers of bodies for W5")
+    parser.add_argument(
+        "--budget", type=float, help="seconds one peer call may take before it runs fewer steps"
+    )
     parser.add_argument("--quiet", action="store_true", help="print only the final table")
     return parser.parse_args(argv)
 
@@ -1405,6 +1419,10 @@ def main(argv: list[str] | None = None) -> int:
             if any(d not in ("float64", "float32") for d in dtypes):
                 raise ValueError(f"--dtypes must be float64 and/or float32; got {args.dtypes}")
             changes["dtypes"] = dtypes
+        if args.w5_sizes:
+            changes["w5_sizes"] = tuple(int(n) for n in args.w5_sizes.split(","))
+        if args.budget is not None:
+            changes["budget"] = args.budget
         if args.steps is not None:
             changes["num_steps"] = args.steps
         if args.repeats is not None:
