@@ -13,6 +13,7 @@ applies) and exit status 2; an unexpected failure gives one line and exit status
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import math
 import os
@@ -436,7 +437,8 @@ def _cmd_fit(args: argparse.Namespace) -> int:
 
 def _cmd_bench(args: argparse.Namespace) -> int:
     try:
-        from . import _bench
+        # import_module honours sys.modules (a package attribute left by an earlier import does not).
+        _bench = importlib.import_module("jaxquat._bench")
     except ImportError:
         raise CommandLineError(
             "bench: the benchmark suite (jaxquat._bench) is not installed"
