@@ -5,7 +5,7 @@ v' = q v q⁻¹; `multiply(q2, q1)` applies q1 first. Angular velocities are `(.
 world frame unless `frame="body"`.
 """
 
-import importlib.metadata
+import importlib.metadata as _metadata
 
 # Algebra
 from ._algebra import (
@@ -20,58 +20,6 @@ from ._algebra import (
     norm as norm,
     normalize as normalize,
     vector_part as vector_part,
-)
-
-# Rotations
-from ._rotation import (
-    from_axis_angle as from_axis_angle,
-    from_euler as from_euler,
-    from_matrix as from_matrix,
-    from_rotvec as from_rotvec,
-    from_two_vectors as from_two_vectors,
-    from_xyzw as from_xyzw,
-    rotate as rotate,
-    to_axis_angle as to_axis_angle,
-    to_euler as to_euler,
-    to_matrix as to_matrix,
-    to_rotvec as to_rotvec,
-    to_xyzw as to_xyzw,
-)
-
-# Geometry
-from ._geometry import (
-    angle_between as angle_between,
-    canonicalize as canonicalize,
-    check_unit as check_unit,
-    mean as mean,
-    random as random,
-    slerp as slerp,
-    squad as squad,
-    squad_control_points as squad_control_points,
-)
-
-# Kinematics
-from ._kinematics import (
-    angular_velocity as angular_velocity,
-    corrected_rate as corrected_rate,
-    rate as rate,
-    step as step,
-)
-
-# Fixed-step integration
-from ._integrate import integrate as integrate, sampled as sampled
-
-# diffrax vector fields and solvers
-from ._solvers import (
-    CF4 as CF4,
-    ExpMidpoint as ExpMidpoint,
-    LieCubicInterpolation as LieCubicInterpolation,
-    LieEuler as LieEuler,
-    Magnus4 as Magnus4,
-    NormalizedEuler as NormalizedEuler,
-    RKMK45 as RKMK45,
-    corrected_vector_field as corrected_vector_field,
-    kinematic_vector_field as kinematic_vector_field,
 )
 
 # Dynamics
@@ -104,7 +52,59 @@ from ._fitting import (
     fit_rigid_body as fit_rigid_body,
 )
 
+# Geometry
+from ._geometry import (
+    angle_between as angle_between,
+    canonicalize as canonicalize,
+    check_unit as check_unit,
+    mean as mean,
+    random as random,
+    slerp as slerp,
+    squad as squad,
+    squad_control_points as squad_control_points,
+)
+
+# Fixed-step integration
+from ._integrate import integrate as integrate, sampled as sampled
+
+# Kinematics
+from ._kinematics import (
+    angular_velocity as angular_velocity,
+    corrected_rate as corrected_rate,
+    rate as rate,
+    step as step,
+)
+
+# Rotations
+from ._rotation import (
+    from_axis_angle as from_axis_angle,
+    from_euler as from_euler,
+    from_matrix as from_matrix,
+    from_rotvec as from_rotvec,
+    from_two_vectors as from_two_vectors,
+    from_xyzw as from_xyzw,
+    rotate as rotate,
+    to_axis_angle as to_axis_angle,
+    to_euler as to_euler,
+    to_matrix as to_matrix,
+    to_rotvec as to_rotvec,
+    to_xyzw as to_xyzw,
+)
+
+# diffrax vector fields and solvers
+from ._solvers import (
+    CF4 as CF4,
+    RKMK45 as RKMK45,
+    ExpMidpoint as ExpMidpoint,
+    LieCubicInterpolation as LieCubicInterpolation,
+    LieEuler as LieEuler,
+    Magnus4 as Magnus4,
+    NormalizedEuler as NormalizedEuler,
+    corrected_vector_field as corrected_vector_field,
+    kinematic_vector_field as kinematic_vector_field,
+)
+
 try:
-    __version__ = importlib.metadata.version("jaxquat")
-except importlib.metadata.PackageNotFoundError:  # running from a source tree without install
+    __version__ = _metadata.version("jaxquat")
+except _metadata.PackageNotFoundError:  # running from a source tree without install
     __version__ = "0+unknown"
