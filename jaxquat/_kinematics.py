@@ -128,7 +128,9 @@ def angular_velocity(qs: ArrayLike, dt: ArrayLike, *, frame: str = "world") -> A
     rotvec = to_rotvec(relative)
     batch = rotvec.shape[:-1]
     if dt.ndim > len(batch):
-        raise ValueError(f"`dt` must be a scalar or of shape {batch} (time-major); got {tuple(dt.shape)}.")
+        raise ValueError(
+            f"`dt` must be a scalar or of shape {batch} (time-major); got {tuple(dt.shape)}."
+        )
     # Non-scalar dt is time-major: align its leading axis with the time axis.
     dt = dt.reshape(dt.shape + (1,) * (len(batch) - dt.ndim))
     try:
