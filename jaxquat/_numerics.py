@@ -20,7 +20,11 @@ from jaxtyping import Array, ArrayLike
 # Below these values of θ² the series (terms through θ⁶) is used.  The first dropped term is then
 # below 1e-17 (float64) / 1e-10 (float32) relative, i.e. round-off, and the direct formula is still
 # accurate (value and gradient) just above the switch.
-_SERIES_THRESHOLD = {jnp.dtype("float64"): 1e-3, jnp.dtype("float32"): 1e-2, jnp.dtype("float16"): 1e-1}
+_SERIES_THRESHOLD = {
+    jnp.dtype("float64"): 1e-3,
+    jnp.dtype("float32"): 1e-2,
+    jnp.dtype("float16"): 1e-1,
+}
 
 
 def default_float_dtype() -> jnp.dtype:

@@ -58,7 +58,9 @@ def near_pi(key, eps, shape=(), dtype=jnp.float64):
     axis = jax.random.normal(key, tuple(shape) + (3,), dtype=dtype)
     axis = axis / jnp.linalg.norm(axis, axis=-1, keepdims=True)
     half = 0.5 * (jnp.pi - eps)
-    return jnp.concatenate([jnp.full(axis.shape[:-1] + (1,), jnp.cos(half), dtype), jnp.sin(half) * axis], -1)
+    return jnp.concatenate(
+        [jnp.full(axis.shape[:-1] + (1,), jnp.cos(half), dtype), jnp.sin(half) * axis], -1
+    )
 
 
 def tangent_perturbation(q, direction):
