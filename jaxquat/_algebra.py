@@ -56,7 +56,7 @@ def multiply(p: ArrayLike, q: ArrayLike) -> Array:
     """
     p = check_trailing(p, 4, "p")
     q = check_trailing(q, 4, "q")
-    p, q = broadcast_batch((p, 1), (q, 1))
+    p, q = broadcast_batch((p, 1, "p"), (q, 1, "q"))
     pw, px, py, pz = _split(p)
     qw, qx, qy, qz = _split(q)
     return jnp.stack(
@@ -99,7 +99,7 @@ def dot(p: ArrayLike, q: ArrayLike) -> Array:
     """The 4-vector dot product w₁w₂ + x₁x₂ + y₁y₂ + z₁z₂, shape `(...)`."""
     p = check_trailing(p, 4, "p")
     q = check_trailing(q, 4, "q")
-    p, q = broadcast_batch((p, 1), (q, 1))
+    p, q = broadcast_batch((p, 1, "p"), (q, 1, "q"))
     return jnp.sum(p * q, axis=-1)
 
 

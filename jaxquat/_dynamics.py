@@ -373,7 +373,7 @@ def simulate_rigid_body(
         raise ValueError(
             f"`torque` must be a callable torque(t, q, omega); got {type(torque).__name__}."
         )
-    dtype = jnp.result_type(q0, omega0, inertia)
+    dtype = q0.dtype  # the orientation's dtype governs, as in `integrate`
     q0, omega0, inertia = q0.astype(dtype), omega0.astype(dtype), inertia.astype(dtype)
     inertia_rank = 2 if _is_matrix(inertia) else 1
     q0, omega0, inertia = broadcast_batch((q0, 1), (omega0, 1), (inertia, inertia_rank))
@@ -527,7 +527,7 @@ def simulate_deformable_body(
         )
     if masses.ndim != 1:
         raise ValueError(f"`masses` must have shape (n,); got shape {tuple(masses.shape)}.")
-    dtype = jnp.result_type(q0, masses)
+    dtype = q0.dtype  # the orientation's dtype governs, as in `integrate`
     t0 = as_float_array(t0, "t0").astype(dtype)
     dt = as_float_array(dt, "dt").astype(dtype)
     shape = jax.eval_shape(positions, t0).shape

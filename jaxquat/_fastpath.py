@@ -263,7 +263,13 @@ def integrate_fast(
             q0.dtype
         ):
             return None
-        batch = np.broadcast_shapes(q0.shape[:-1], omega.omegas.shape[1:-1])
+        try:
+            batch = np.broadcast_shapes(q0.shape[:-1], omega.omegas.shape[1:-1])
+        except ValueError:
+            raise ValueError(
+                f"`omegas` of shape {tuple(omega.omegas.shape)} (time-major (T, *batch, 3)) do not "
+                f"broadcast with `q0` of shape {tuple(q0.shape)}."
+            ) from None
     elif callable(omega):
         return None
     else:

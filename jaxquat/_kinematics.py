@@ -70,7 +70,7 @@ def corrected_rate(q: ArrayLike, omega: ArrayLike, dt: ArrayLike, *, frame: str 
     q = check_trailing(q, 4, "q")
     omega = check_trailing(omega, 3, "omega")
     dt = as_float_array(dt, "dt")
-    omega, dt = broadcast_batch((omega, 1), (dt, 0))
+    q, omega, dt = broadcast_batch((q, 1, "q"), (omega, 1, "omega"), (dt, 0, "dt"))
     factor = tan_half_over(sum_squares(omega) * dt * dt)
     return _apply(q, factor[..., None] * omega, frame)
 
@@ -93,7 +93,7 @@ def step(q: ArrayLike, omega: ArrayLike, dt: ArrayLike, *, frame: str = "world")
     q = check_trailing(q, 4, "q")
     omega = check_trailing(omega, 3, "omega")
     dt = as_float_array(dt, "dt")
-    omega, dt = broadcast_batch((omega, 1), (dt, 0))
+    q, omega, dt = broadcast_batch((q, 1, "q"), (omega, 1, "omega"), (dt, 0, "dt"))
     increment = from_rotvec(omega * dt[..., None])
     return multiply(increment, q) if frame == "world" else multiply(q, increment)
 
@@ -127,6 +127,7 @@ def angular_velocity(qs: ArrayLike, dt: ArrayLike, *, frame: str = "world") -> A
         relative = multiply(conjugate(before), after)
     rotvec = to_rotvec(relative)
     batch = rotvec.shape[:-1]
+    given = tuple(dt.shape)
     if dt.ndim > len(batch):
         raise ValueError(
             f"`dt` must be a scalar or of shape {batch} (time-major); got {tuple(dt.shape)}."
@@ -137,6 +138,6 @@ def angular_velocity(qs: ArrayLike, dt: ArrayLike, *, frame: str = "world") -> A
         dt = jnp.broadcast_to(dt, batch)
     except ValueError as e:
         raise ValueError(
-            f"`dt` must be a scalar or of shape {batch} (time-major); got {tuple(dt.shape)}."
+            f"`dt` must be a scalar or of shape {batch} (time-major); got {given}."
         ) from e
     return rotvec / dt[..., None]

@@ -85,20 +85,28 @@ def check_frame(frame) -> str:
     return check_choice(frame, ("world", "body"), "frame")
 
 
-def broadcast_batch(*named: tuple[Array, int]) -> tuple[Array, ...]:
+def broadcast_batch(*named: tuple) -> tuple[Array, ...]:
     """Broadcast the leading (batch) axes of arrays whose trailing `k` axes are their own.
 
-    Each argument is `(array, k)` where the last `k` axes are the element shape. Raises a `ValueError`
-    when the batch shapes are incompatible.
+    Each argument is `(array, k)` or `(array, k, name)` where the last `k` axes are the element shape.
+    Raises a `ValueError` naming the arguments (where given) when the batch shapes are incompatible.
     """
-    batch_shapes = [a.shape[: a.ndim - k] for a, k in named]
+    batch_shapes = [item[0].shape[: item[0].ndim - item[1]] for item in named]
     try:
         batch = np.broadcast_shapes(*batch_shapes)
     except ValueError as e:
-        raise ValueError(
-            f"leading (batch) shapes {', '.join(str(s) for s in batch_shapes)} do not broadcast."
-        ) from e
-    return tuple(jnp.broadcast_to(a, batch + a.shape[a.ndim - k :]) for a, k in named)
+        parts = [
+            (
+                f"`{item[2]}` has shape {tuple(item[0].shape)}"
+                if len(item) > 2
+                else f"shape {tuple(item[0].shape)}"
+            )
+            for item in named
+        ]
+        raise ValueError(f"leading (batch) axes do not broadcast: {'; '.join(parts)}.") from e
+    return tuple(
+        jnp.broadcast_to(item[0], batch + item[0].shape[item[0].ndim - item[1] :]) for item in named
+    )
 
 
 def sum_squares(x: Array, axis: int = -1, keepdims: bool = False) -> Array:

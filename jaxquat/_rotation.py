@@ -5,6 +5,8 @@ Active rotations with the right-hand rule: v' = q v q⁻¹. Quaternions are (w, 
 
 from __future__ import annotations
 
+import math
+
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
@@ -44,10 +46,10 @@ def rotate(v: ArrayLike, q: ArrayLike, center: ArrayLike | None = None) -> Array
     q = check_trailing(q, 4, "q")
     if center is not None:
         center = check_trailing(center, 3, "center")
-        v, q, center = broadcast_batch((v, 1), (q, 1), (center, 1))
+        v, q, center = broadcast_batch((v, 1, "v"), (q, 1, "q"), (center, 1, "center"))
         v = v - center
     else:
-        v, q = broadcast_batch((v, 1), (q, 1))
+        v, q = broadcast_batch((v, 1, "v"), (q, 1, "q"))
     w = q[..., :1]
     u = q[..., 1:]
     scale = 2.0 / sum_squares(q, keepdims=True)
@@ -293,8 +295,10 @@ def to_euler(q: ArrayLike, seq: str) -> Array:
     middle = 2.0 * jnp.arctan2(
         safe_norm(jnp.stack([c, d], axis=-1)), safe_norm(jnp.stack([a, b], axis=-1))
     )
-    at_zero = jnp.abs(middle) <= _GIMBAL_LOCK_EPS
-    at_pi = jnp.abs(middle - jnp.pi) <= _GIMBAL_LOCK_EPS
+    # SciPy's 1e-7, widened to a few ulp of π where the dtype cannot resolve 1e-7 there (float32).
+    lock_eps = max(_GIMBAL_LOCK_EPS, 4.0 * math.pi * float(jnp.finfo(middle.dtype).eps))
+    at_zero = jnp.abs(middle) <= lock_eps
+    at_pi = jnp.abs(middle - jnp.pi) <= lock_eps
     regular = ~(at_zero | at_pi)
     locked = jnp.where(at_zero, 2.0 * half_sum, (-2.0 if extrinsic else 2.0) * half_diff)
     zero = jnp.zeros_like(middle)

@@ -161,6 +161,6 @@ def test_wrong_trailing_dimension_raises(call, name):
 
 def test_incompatible_batch_shapes_raise():
     with pytest.raises(
-        ValueError, match=r"leading \(batch\) shapes \(3,\), \(2,\) do not broadcast"
+        ValueError, match=r"do not broadcast: `p` has shape \(3, 4\); `q` has shape \(2, 4\)"
     ):
         jq.multiply(np.zeros((3, 4)), np.zeros((2, 4)))
