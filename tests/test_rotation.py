@@ -11,7 +11,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import assert_quat_close, near_pi, quat_distance, random_unit
+from helpers import (
+    SEED_CENTRE,
+    SEED_MASSES,
+    SEED_POSITIONS,
+    SEED_ROTATED,
+    SEED_ROTATED_CENTRE,
+    assert_quat_close,
+    near_pi,
+    quat_distance,
+    random_unit,
+)
 from scipy.spatial.transform import Rotation
 
 import jaxquat as jq
@@ -104,37 +114,8 @@ def test_seed_matrix_round_trips(rotations):
     )
 
 
-# The DeformableBodies.jl example of seed 001: five point masses rotated by 1+2i+3j+4k about their
-# centre of mass (computed inline; the dynamics module comes later).
-SEED_MASSES = np.array(
-    [
-        0.027623475555394572,
-        0.08235034045511802,
-        0.16330720003612642,
-        0.8618919657812625,
-        0.5806780634969708,
-    ]
-)
-SEED_POSITIONS = np.array(
-    [
-        [0.622502144842952, 0.11921732534587282, 0.8843304426741481],
-        [0.9932241501452683, 0.334779563612172, 0.8007546565223924],
-        [0.386699947607279, 0.8099171674657109, 0.5908987643400341],
-        [0.000659859384851913, 0.7755364055477827, 0.37741989797604925],
-        [0.922564768890463, 0.04356399040074832, 0.18765714901619934],
-    ]
-)
-SEED_CENTRE = np.array([0.40704043526795597, 0.4993749112573767, 0.3619966261272671])
-SEED_ROTATED = np.array(
-    [
-        [0.5957564162308041, 1.1179577906424625, 0.14864795800777955],
-        [0.31606113462014573, 1.2375345239874034, 0.46226994400353016],
-        [0.629867962558881, 0.5349019262226586, 0.6755761877965223],
-        [0.7260927511178531, 0.14668287713769346, 0.48634359841711555],
-        [-0.1252661931427156, 0.8787684558838791, 0.08516928092044052],
-    ]
-)
-SEED_ROTATED_CENTRE = np.array([0.40704043526795597, 0.49937491125737676, 0.361996626127267])
+# The DeformableBodies.jl example of seed 001 (data in helpers.py): the centre of mass is computed
+# inline here; the dynamics module's center_of_mass is tested against it in test_dynamics.py.
 
 
 def test_seed_point_mass_rotation_about_centre_of_mass():
