@@ -131,7 +131,10 @@ def _chunk_length(num_steps: int, renormalize_every: int | None, has_xs: bool) -
             candidates = [math.isqrt(num_steps - 1) + 1] if num_steps > 1 else [1]
 
     def badness(d):
-        return (abs(math.log(d / target)), d % UNROLL != 0)
+        # Within a factor of 2 of √T a multiple of the unroll factor wins (no remainder steps inside
+        # the unrolled scan); otherwise the closest to √T.
+        far = abs(math.log(d / target))
+        return (far > math.log(2.0), d % UNROLL != 0, far)
 
     return min(candidates, key=badness)
 
@@ -233,6 +236,49 @@ def _run_all(step, carry, xs, num_steps, renormalize_every, unroll):
     return jnp.concatenate([as_array(carry)[None], saved], axis=0)
 
 
+def _powers(carry, rotation, count: int, frame: str):
+    """carry, carry·r, …, carry·r^(count−1) (r acting in `frame`), stacked along a new leading axis, and
+    carry·r^count."""
+    last, stacked = lax.scan(
+        lambda c, _: (_act_soa(c, rotation, frame), c), carry, None, length=count
+    )
+    return stacked, last
+
+
+def _constant_trajectory(q0, rotation, num_steps, frame, renormalize_every):
+    """q_k = r^k ⊗ q₀ (world; q₀ ⊗ r^k in the body frame) for k = 0 … T, time-major `(T + 1, *batch, 4)`.
+
+    Blocked by the associativity of the product: with K ≈ √(T + 1), P_i = r^i (i < K) and
+    Q_j = r^(jK) ⊗ q₀ (j < ⌈(T + 1)/K⌉) are two short scans, and q_(jK+i) = P_i ⊗ Q_j is one elementwise
+    pass that writes the whole output in order, on every core XLA uses. These are the Lie–Euler steps'
+    products, associated differently: each q_k is at most K + T/K products deep instead of k, so the
+    round-off is smaller than stepping's. The scan's per-step write of an `(N, 4)` slice ran at less
+    than half the speed (issue 8, W2). Q_j is renormalised at every block when `renormalize_every` is
+    set (a block is ≤ √(T + 1) steps, well inside any renormalisation interval's purpose).
+    """
+    length = num_steps + 1
+    block = max(1, math.isqrt(length))
+    num_blocks = -(-length // block)
+    identity = tuple(
+        jnp.full_like(q0[0], value) for value in (1.0, 0.0, 0.0, 0.0)
+    )
+    powers, step_block = _powers(identity, rotation, block, frame)  # P_i = r^i, and r^K
+
+    def advance_block(c, _):
+        nxt = _act_soa(c, step_block, frame)
+        if renormalize_every is not None:
+            nxt = _normalize(nxt)
+        return nxt, c
+
+    _, starts = lax.scan(advance_block, q0, None, length=num_blocks)  # Q_j
+    expand = lambda a, axis: jnp.expand_dims(a, axis)  # noqa: E731
+    p = tuple(expand(a, 0) for a in powers)  # (1, K, *batch)
+    q = tuple(expand(a, 1) for a in starts)  # (J, 1, *batch)
+    out = _stack(_multiply_soa(p, q) if frame == "world" else _multiply_soa(q, p))
+    out = out.reshape((num_blocks * block,) + out.shape[2:])
+    return out[:length]
+
+
 def integrate_fast(
     q0,
     omega,
@@ -322,7 +368,9 @@ def _integrate_fast(
         def constant_step(carry, _):
             return _act_soa(carry, rotation, frame)
 
-        return run(constant_step, _split(q0, 4), None, unroll if save == "final" else 1)
+        if save == "all":
+            return _constant_trajectory(_split(q0, 4), rotation, num_steps, frame, renormalize_every)
+        return run(constant_step, _split(q0, 4), None, unroll)
 
     samples = omega.omegas
     # Sample k is used on step k exactly when the sampling grid is the integration grid; else the
