@@ -259,9 +259,7 @@ def _constant_trajectory(q0, rotation, num_steps, frame, renormalize_every):
     length = num_steps + 1
     block = max(1, math.isqrt(length))
     num_blocks = -(-length // block)
-    identity = tuple(
-        jnp.full_like(q0[0], value) for value in (1.0, 0.0, 0.0, 0.0)
-    )
+    identity = tuple(jnp.full_like(q0[0], value) for value in (1.0, 0.0, 0.0, 0.0))
     powers, step_block = _powers(identity, rotation, block, frame)  # P_i = r^i, and r^K
 
     def advance_block(c, _):
@@ -369,7 +367,9 @@ def _integrate_fast(
             return _act_soa(carry, rotation, frame)
 
         if save == "all":
-            return _constant_trajectory(_split(q0, 4), rotation, num_steps, frame, renormalize_every)
+            return _constant_trajectory(
+                _split(q0, 4), rotation, num_steps, frame, renormalize_every
+            )
         return run(constant_step, _split(q0, 4), None, unroll)
 
     samples = omega.omegas
