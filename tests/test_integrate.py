@@ -632,8 +632,9 @@ def test_sampled_on_the_grid_equals_the_time_lookup(getkey):
     np.testing.assert_allclose(on_grid[1], by_time[1], atol=1e-13)
 
 
+@pytest.mark.parametrize("frame", ["world", "body"])
 @pytest.mark.parametrize("renormalize_every", [None, 7, 30])
-def test_sampled_euler_forward_and_derivatives_agree(renormalize_every, getkey):
+def test_sampled_euler_forward_and_derivatives_agree(renormalize_every, frame, getkey):
     """Sampled ω + euler, final state: evaluated it is one flat scan, differentiated it is the
     checkpointed nested scan (_fastpath._sampled_final). Values agree with the composition of exact
     step rotations; jacfwd, jacrev and central differences agree for the samples and q₀; the primal of
@@ -644,13 +645,20 @@ def test_sampled_euler_forward_and_derivatives_agree(renormalize_every, getkey):
 
     def final(om, q, h):
         return jq.integrate(
-            q, jq.sampled(om, dt), h, steps, save="final", renormalize_every=renormalize_every
+            q,
+            jq.sampled(om, dt),
+            h,
+            steps,
+            save="final",
+            frame=frame,
+            renormalize_every=renormalize_every,
         )
 
     value = jax.jit(lambda om: final(om, q0, dt))(omegas)
     expected = q0
     for k in range(steps):
-        expected = jq.multiply(jq.from_rotvec(omegas[k] * dt), expected)
+        step = jq.from_rotvec(omegas[k] * dt)
+        expected = jq.multiply(step, expected) if frame == "world" else jq.multiply(expected, step)
     assert_quat_close(value, expected, atol=1e-14)
     primal, _ = jax.jvp(lambda om: final(om, q0, dt), (omegas,), (jnp.ones_like(omegas),))
     np.testing.assert_allclose(primal, value, atol=1e-15)
