@@ -62,6 +62,21 @@ def test_sampled_rates_reproduce_the_closed_form():
     assert np.max(_bench.angle_error(problem.expected(0), problem.q0)) < 1e-15
 
 
+def test_sampled_rates_match_the_direct_formula():
+    # ω_k = log(exp(R(exp(a t_{k+1})) b Δt) ⊗ exp(a Δt))/Δt evaluated term by term, including a = 0.
+    rng = np.random.default_rng(3)
+    a = np.vstack([2.0 * rng.normal(size=(6, 3)), np.zeros((1, 3))])
+    b = 2.0 * rng.normal(size=(7, 3))
+    dt, steps = 0.01, 40
+    rates = np.asarray(_bench._sampled_rates(a, b, dt, steps))
+    for k in range(steps):
+        outer = _bench._q_exp(a * (k + 1) * dt, np)
+        step = _bench._q_mul(
+            _bench._q_exp(_bench._q_rotate(outer, b * dt, np), np), _bench._q_exp(a * dt, np), np
+        )
+        np.testing.assert_allclose(rates[k], _bench._q_log(step, np) / dt, rtol=0, atol=1e-12)
+
+
 def test_w5_reference_gradient_matches_the_closed_form():
     # The hand-written loop (the reference gradient of W5) against the gradient of the closed form.
     problem = _bench.make_problem("W1", "float64", 4, 30)
