@@ -117,6 +117,9 @@ class Preset:
     w5_dtypes: tuple[str, ...] | None = None  # None: the same as `dtypes`
     w5_variants: tuple[str, ...] = ("constant", "sampled")  # which ω W5 differentiates w.r.t.
     sample_seconds: float = 0.01  # shorter calls are repeated within one timing sample
+    # W2's check: None compares every body at every step with the closed form; n compares n bodies
+    # spread over the batch at every step and every body at a few steps (`check_bodies`, `check_steps`).
+    w2_check_bodies: int | None = None
 
 
 PRESETS: dict[str, Preset] = {
@@ -151,6 +154,7 @@ PRESETS: dict[str, Preset] = {
         w4_repeats=3,
         w5_sizes=(1000,),
         reference=False,
+        w2_check_bodies=512,
         w4_methods=("euler", "midpoint", "magnus4", "cf4"),
         w4_solvers=("Magnus4", "RKMK45"),
     ),
@@ -255,6 +259,7 @@ class Problem:
     spin: np.ndarray | None  # (N, 3): W3 the second axis b
     omegas: Any = None  # W3: (T, N, 3) samples, a jax array in `dtype`
     dt: float = DT
+    _closed_form: dict = dataclasses.field(default_factory=dict, repr=False)  # W2 check's cache
 
     def expected(self, num_steps: int) -> np.ndarray:
         """Closed-form final orientations after `num_steps` steps, float64 `(N, 4)`."""
@@ -265,17 +270,70 @@ class Problem:
             rotation = _q_mul(rotation, _q_exp(self.spin * t, np), np)
         return _q_mul(rotation, q0, np)
 
-    def trajectory_error(self, qs: np.ndarray, chunk: int = 64) -> float:
-        """Max angle error of a time-major trajectory `(K + 1, N, 4)` against the closed form."""
+    def trajectory_check(
+        self, qs: np.ndarray, bodies: int | None = None, chunk: int = 64
+    ) -> tuple[float, float]:
+        """(max angle error, max ||q| − 1|) of a time-major trajectory `(K + 1, N, 4)` against the
+        closed form. `bodies=None` checks every body at every step; `bodies=n` checks the
+        n bodies of `check_bodies` at every step and every body at the steps of `check_steps`.
+        The closed-form values are kept on the problem, so the contenders of a row share them."""
+        num_steps, num_bodies = qs.shape[0] - 1, qs.shape[1]
         q0 = self.q0.astype(np.float64)
         omega = self.omega.astype(np.float64)
-        worst = 0.0
-        for start in range(0, qs.shape[0], chunk):
-            stop = min(start + chunk, qs.shape[0])
-            steps = np.arange(start, stop, dtype=np.float64)[:, None, None]
-            expected = _q_mul(_q_exp(steps * self.dt * omega[None], np), q0[None], np)
-            worst = max(worst, float(np.max(angle_error(qs[start:stop], expected))))
-        return worst
+        worst = [0.0, 0.0]
+
+        def expected(steps, index):
+            k = np.asarray(steps, dtype=np.float64)[:, None, None]
+            return _q_mul(_q_exp(k * self.dt * omega[index][None], np), q0[index][None], np)
+
+        def visit(block, reference):
+            block = np.asarray(block, dtype=np.float64)
+            worst[0] = max(worst[0], float(np.max(angle_error(block, reference))))
+            norm = np.abs(np.linalg.norm(block, axis=-1) - 1.0)
+            worst[1] = max(worst[1], float(np.max(norm)))
+
+        if bodies is None:
+            for start in range(0, num_steps + 1, chunk):
+                stop = min(start + chunk, num_steps + 1)
+                visit(qs[start:stop], expected(range(start, stop), slice(None)))
+            return worst[0], worst[1]
+        cache = self._closed_form
+        index = check_bodies(num_bodies, bodies)
+        key = ("bodies", bodies)
+        if key not in cache or cache[key].shape[0] < num_steps + 1:
+            cache[key] = np.concatenate(
+                [
+                    expected(range(start, min(start + chunk, num_steps + 1)), index)
+                    for start in range(0, num_steps + 1, chunk)
+                ]
+            )
+        visit(qs[:, index], cache[key][: num_steps + 1])
+        steps = check_steps(num_steps)
+        for k in steps:
+            if ("step", k) not in cache:
+                cache["step", k] = expected([k], slice(None))[0]
+        visit(qs[steps], np.stack([cache["step", k] for k in steps]))
+        return worst[0], worst[1]
+
+
+def check_bodies(num_bodies: int, count: int) -> np.ndarray:
+    """The bodies whose whole trajectory a subset check of W2 compares with the closed form: the
+    first and last 8 (vector-lane and chunk remainders) and the rest spread evenly over the batch
+    with an odd stride."""
+    if count >= num_bodies:
+        return np.arange(num_bodies)
+    ends = np.r_[0:8, num_bodies - 8 : num_bodies]
+    spread = max(count - 16, 2)
+    stride = max(1, (num_bodies - 1) // (spread - 1))
+    stride -= 1 if stride > 1 and stride % 2 == 0 else 0  # odd: every lane residue is visited
+    return np.unique(np.clip(np.r_[ends, np.arange(spread) * stride], 0, num_bodies - 1))
+
+
+def check_steps(num_steps: int) -> list[int]:
+    """The steps at which a subset check of W2 compares every body with the closed form: the first
+    few, the last few and 17 spread over the run (block and chunk boundaries fall anywhere)."""
+    steps = {0, 1, 2, 3, num_steps - 1, num_steps, *np.linspace(0, num_steps, 17).round()}
+    return sorted(int(k) for k in steps if 0 <= k <= num_steps)
 
 
 def _sampled_rates(a, b, dt, num_steps):
@@ -641,16 +699,16 @@ def _missing(modules: Sequence[str]) -> str | None:
     return None
 
 
-def _check(problem: Problem, steps: int, out) -> tuple[float, float]:
-    """(max angle error against the closed form, max ||q| − 1|) of a contender's result."""
+def _check(problem: Problem, steps: int, out, w2_bodies: int | None = None) -> tuple[float, float]:
+    """(max angle error against the closed form, max ||q| − 1|) of a contender's result; W2 on every
+    body at every step, or with `w2_bodies` on that many bodies at every step and every body at
+    the steps of `check_steps` (every contender of a row is checked the same way)."""
     out = np.asarray(out)
     if problem.workload == "W2":
         expected_shape = (steps + 1, problem.num_bodies, 4)
         if out.shape != expected_shape:
             raise ValueError(f"trajectory of shape {out.shape}, expected {expected_shape}")
-        error = problem.trajectory_error(out)
-        norm = float(np.max(np.abs(np.linalg.norm(out[-1].astype(np.float64), axis=-1) - 1.0)))
-        return error, norm
+        return problem.trajectory_check(out, w2_bodies)
     if out.shape != (problem.num_bodies, 4):
         raise ValueError(f"result of shape {out.shape}, expected {(problem.num_bodies, 4)}")
     error = float(np.max(angle_error(out, problem.expected(steps))))
@@ -668,6 +726,14 @@ def run_row(problem: Problem, preset: Preset, log: Callable[[str], None]) -> dic
         "num_steps": T,
         "contenders": {},
     }
+    if problem.workload == "W2":
+        if preset.w2_check_bodies is None or preset.w2_check_bodies >= N:
+            record["check"] = "every body at every step"
+        else:
+            record["check"] = (
+                f"{len(check_bodies(N, preset.w2_check_bodies))} bodies spread over the batch at "
+                f"every step, and every body at {len(check_steps(T))} steps"
+            )
     runners: dict[str, tuple[Runner, int, int]] = {}
     for contender in CONTENDERS:
         if problem.workload not in contender.workloads:
@@ -701,7 +767,7 @@ def run_row(problem: Problem, preset: Preset, log: Callable[[str], None]) -> dic
                     steps = min(T, max(long, int((preset.budget - setup) / per_step)))
             runner = contender.make(problem, steps)
             seconds, out = _timed(runner.run)
-            error, norm_error = _check(problem, steps, out)
+            error, norm_error = _check(problem, steps, out, preset.w2_check_bodies)
             del out
         except ImportError as e:
             entry["skipped"] = f"not available ({e})"
@@ -1330,6 +1396,15 @@ def render_markdown(report: dict) -> str:
             "",
             "† timed on fewer steps to stay within the per-call budget (cost per step is constant).",
             "",
+        ]
+        checks = [
+            f"{row['workload']} {row['dtype']} N = {row['num_bodies']:,}: checked against the closed "
+            f"form on {row['check']} (the same for every contender)."
+            for row in rows
+            if "check" in row and not row["check"].startswith("every body")
+        ]
+        lines += checks + ([""] if checks else [])
+        lines += [
             "Compile time (s) of the JAX contenders, per row:",
             "",
             "| workload | dtype | N | " + " | ".join(names) + " |",

@@ -77,6 +77,38 @@ def test_sampled_rates_match_the_direct_formula():
         np.testing.assert_allclose(rates[k], _bench._q_log(step, np) / dt, rtol=0, atol=1e-12)
 
 
+def _exact_trajectory(problem):
+    steps = np.arange(problem.num_steps + 1, dtype=np.float64)[:, None, None]
+    rotation = _bench._q_exp(steps * problem.dt * problem.omega[None], np)
+    return _bench._q_mul(rotation, problem.q0[None], np)
+
+
+def test_w2_subset_check_catches_wrong_answers():
+    # The quick preset checks W2 on a subset (some bodies at every step, every body at some steps);
+    # a wrong body, a wrong step or a wrong norm is still caught, and a right answer passes.
+    problem = _bench.make_problem("W2", "float64", 3000, 60)
+    exact = _exact_trajectory(problem)
+    bodies = _bench.check_bodies(3000, 64)
+    steps = _bench.check_steps(60)
+    assert len(bodies) <= 64 and {0, 7, 2992, 2999} <= set(bodies)
+    assert len(set(bodies % 8)) == 8 and {0, 1, 59, 60} <= set(steps)
+    error, norm = problem.trajectory_check(exact, 64)
+    assert error < 1e-12 and norm < 1e-12
+    assert problem.trajectory_check(exact) == pytest.approx((error, norm), abs=1e-12)
+
+    body = next(i for i in range(3000) if i not in set(bodies))
+    wrong = exact.copy()
+    wrong[23:, body] = wrong[23:, body][:, [0, 2, 1, 3]]  # one unchecked body, from step 23 on
+    assert problem.trajectory_check(wrong, 64)[0] > 1e-3
+    step = next(k for k in range(61) if k not in steps)
+    wrong = exact.copy()
+    wrong[step, :, 1] += 1e-6  # every body, at one unchecked step
+    assert problem.trajectory_check(wrong, 64)[0] > 1e-7
+    wrong = exact.copy()
+    wrong[:, body] *= 1.001  # right rotation, wrong norm
+    assert problem.trajectory_check(wrong, 64)[1] > 1e-4
+
+
 def test_w5_reference_gradient_matches_the_closed_form():
     # The hand-written loop (the reference gradient of W5) against the gradient of the closed form.
     problem = _bench.make_problem("W1", "float64", 4, 30)
