@@ -97,6 +97,38 @@ def relaunch_with_huge_pages(command: Sequence[str]) -> None:
 # Configuration
 
 
+# W4 sweeps that are dense around each method's crossing of W4_TARGET_ERROR (1e-8 rad), so the time
+# at the target is interpolated between neighbours a few per cent apart in steps (fourth-order
+# methods: error ∝ steps⁻⁴; magnus4 crosses near 480 steps, cf4 near 360) or ~1.4× apart in tolerance
+# (Tsit5 and RKMK45 cross near 3.4e-9, numpy-quaternion's DOP853 near 6.5e-9). The outer points
+# anchor the plot and keep the crossing bracketed.
+_W4_DENSE_STEPS = (256, 384, 416, 448, 480, 512, 544, 576, 1024)
+_W4_DENSE_TOLERANCES = (1e-7, 2e-8, 1.4e-8, 1e-8, 7e-9, 5e-9, 3.5e-9, 2.5e-9, 1.8e-9, 1.3e-9, 1e-9)
+W4_DENSE_SWEEPS: tuple[tuple[str, tuple[float, ...]], ...] = (
+    ("jaxquat integrate magnus4", _W4_DENSE_STEPS),
+    ("jaxquat integrate cf4", (256, 320, 352, 384, 416, 512)),
+    ("jaxquat diffrax Magnus4", _W4_DENSE_STEPS),
+    ("diffrax Tsit5 (stock)", _W4_DENSE_TOLERANCES + (1e-10,)),
+    ("jaxquat diffrax RKMK45", _W4_DENSE_TOLERANCES + (1e-10,)),
+    ("numpy-quaternion integrate_angular_velocity", _W4_DENSE_TOLERANCES),
+)
+
+
+def _with_wide(sweeps, steps, tolerances):
+    """Dense sweeps merged with a preset's wide grids (steps ascending, tolerances descending)."""
+    merged = []
+    for name, values in sweeps:
+        if any(isinstance(v, float) for v in values):
+            merged.append((name, tuple(sorted(set(values) | set(tolerances), reverse=True))))
+        else:
+            merged.append((name, tuple(sorted(set(values) | set(steps)))))
+    return tuple(merged)
+
+
+_FULL_W4_STEPS = (16, 32, 64, 128, 256, 512, 1024, 2048, 4096, 8192, 16384)
+_FULL_W4_TOLERANCES = (1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12, 1e-13)
+
+
 @dataclasses.dataclass(frozen=True)
 class Preset:
     """What one run of the suite measures."""
@@ -114,6 +146,9 @@ class Preset:
     reference: bool  # also time the tuned hand-written JAX loop (not a peer; a yardstick)
     w4_methods: tuple[str, ...] = ("euler", "midpoint", "magnus4", "cf4")  # of `integrate`
     w4_solvers: tuple[str, ...] = ("LieEuler", "ExpMidpoint", "Magnus4", "CF4", "RKMK45")  # diffrax
+    # W4 sweeps of single methods, by series name, instead of `w4_steps` / `w4_tolerances` (e.g.
+    # dense around each method's crossing of the target error).
+    w4_sweeps: tuple[tuple[str, tuple[float, ...]], ...] = ()
     w5_dtypes: tuple[str, ...] | None = None  # None: the same as `dtypes`
     w5_variants: tuple[str, ...] = ("constant", "sampled")  # which ω W5 differentiates w.r.t.
     sample_seconds: float = 0.01  # shorter calls are repeated within one timing sample
@@ -157,6 +192,7 @@ PRESETS: dict[str, Preset] = {
         w2_check_bodies=512,
         w4_methods=("euler", "midpoint", "magnus4", "cf4"),
         w4_solvers=("Magnus4", "RKMK45"),
+        w4_sweeps=W4_DENSE_SWEEPS,
     ),
     "full": Preset(
         sizes=(1, 1000, 100_000),
@@ -165,11 +201,12 @@ PRESETS: dict[str, Preset] = {
         repeats=5,
         budget=12.0,
         workloads=("W1", "W2", "W3", "W4", "W5"),
-        w4_steps=(16, 32, 64, 128, 256, 512, 1024, 2048, 4096, 8192, 16384),
-        w4_tolerances=(1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12, 1e-13),
+        w4_steps=_FULL_W4_STEPS,
+        w4_tolerances=_FULL_W4_TOLERANCES,
         w4_repeats=5,
         w5_sizes=(1, 1000, 100_000),
         reference=True,
+        w4_sweeps=_with_wide(W4_DENSE_SWEEPS, _FULL_W4_STEPS, _FULL_W4_TOLERANCES),
     ),
 }
 
@@ -886,6 +923,9 @@ def _w4_series(preset: Preset, log: Callable[[str], None]) -> list[dict]:
     def omega(t, q=None):
         return coning_omega(t, jnp)
 
+    def swept(name, default):
+        return tuple(dict(preset.w4_sweeps).get(name, default))
+
     # jaxquat's fixed-step integrators.
     try:
         integrate, _ = _load_integrate()
@@ -896,7 +936,8 @@ def _w4_series(preset: Preset, log: Callable[[str], None]) -> list[dict]:
         for method in preset.w4_methods:
             points, compile_seconds = [], 0.0
             try:
-                for steps in preset.w4_steps:
+                for steps in swept(f"jaxquat integrate {method}", preset.w4_steps):
+                    steps = int(steps)
                     runner = _compiled(
                         lambda q0, steps=steps, method=method: integrate(
                             q0, omega, t_end / steps, steps, method=method, save="final"
@@ -968,7 +1009,7 @@ def _w4_series(preset: Preset, log: Callable[[str], None]) -> list[dict]:
             "diffrax Tsit5 (stock)",
             "peer",
             solve(diffrax.ODETerm(plain_rate), diffrax.Tsit5(), adaptive, lambda p: None),
-            list(preset.w4_tolerances),
+            list(swept("diffrax Tsit5 (stock)", preset.w4_tolerances)),
             "tolerance",
             note="adaptive, rtol = atol = tolerance, plain rate ½ ω̃ q in ℝ⁴",
         )
@@ -980,17 +1021,17 @@ def _w4_series(preset: Preset, log: Callable[[str], None]) -> list[dict]:
         if _solvers is not None:
             term = diffrax.ODETerm(_solvers.kinematic_vector_field(omega))
             fixed = diffrax.ConstantStepSize()
-            dts = [t_end / steps for steps in preset.w4_steps]
             for solver_name in [n for n in preset.w4_solvers if n != "RKMK45"]:
                 solver_class = getattr(_solvers, solver_name, None)
                 if solver_class is None:
                     log(f"  jaxquat diffrax {solver_name}: not available")
                     continue
+                name = f"jaxquat diffrax {solver_name}"
                 sweep(
-                    f"jaxquat diffrax {solver_name}",
+                    name,
                     "jaxquat",
                     solve(term, solver_class(), lambda p: fixed, lambda p: p),
-                    dts,
+                    [t_end / steps for steps in swept(name, preset.w4_steps)],
                     "dt",
                 )
             if "RKMK45" in preset.w4_solvers and hasattr(_solvers, "RKMK45"):
@@ -998,7 +1039,7 @@ def _w4_series(preset: Preset, log: Callable[[str], None]) -> list[dict]:
                     "jaxquat diffrax RKMK45",
                     "jaxquat",
                     solve(term, _solvers.RKMK45(), adaptive, lambda p: None),
-                    list(preset.w4_tolerances),
+                    list(swept("jaxquat diffrax RKMK45", preset.w4_tolerances)),
                     "tolerance",
                     note="adaptive, rtol = atol = tolerance",
                 )
@@ -1011,7 +1052,8 @@ def _w4_series(preset: Preset, log: Callable[[str], None]) -> list[dict]:
 
         points = []
         start_orientation = quaternion.from_float_array(coning_exact(0.0))
-        for tolerance in preset.w4_tolerances:
+        name = "numpy-quaternion integrate_angular_velocity"
+        for tolerance in swept(name, preset.w4_tolerances):
 
             def run(tolerance=tolerance):
                 # integrate_angular_velocity resets the global warning filters; contain that.
@@ -1037,7 +1079,7 @@ def _w4_series(preset: Preset, log: Callable[[str], None]) -> list[dict]:
                 }
             )
         add(
-            "numpy-quaternion integrate_angular_velocity",
+            name,
             "peer",
             points,
             note="SciPy DOP853, atol = tolerance, rtol = 0",

@@ -44,6 +44,7 @@ def test_every_contender_agrees_with_the_closed_form(micro_report):
         for name, entry in row["contenders"].items():
             assert entry.get("correct"), f"W5 {row['variant']} {name}: {entry}"
     series = {s["name"]: s for s in report["w4"]["series"]}
+    assert {"diffrax Tsit5 (stock)", "jaxquat integrate magnus4"} <= set(series)
     # Fourth-order methods at 256 steps and the adaptive peers at tolerance 1e-9 are all accurate.
     for name in ("jaxquat integrate magnus4", "diffrax Tsit5 (stock)"):
         assert series[name]["points"][0]["error"] < 1e-5, name
@@ -107,6 +108,16 @@ def test_w2_subset_check_catches_wrong_answers():
     wrong = exact.copy()
     wrong[:, body] *= 1.001  # right rotation, wrong norm
     assert problem.trajectory_check(wrong, 64)[1] > 1e-4
+
+
+def test_w4_dense_sweeps_name_series_that_run():
+    quick = _bench.PRESETS["quick"]
+    names = {f"jaxquat integrate {m}" for m in quick.w4_methods}
+    names |= {f"jaxquat diffrax {s}" for s in quick.w4_solvers}
+    names |= {"diffrax Tsit5 (stock)", "numpy-quaternion integrate_angular_velocity"}
+    assert set(dict(quick.w4_sweeps)) <= names
+    for name, values in _bench.PRESETS["full"].w4_sweeps:  # the full grid keeps its wide range
+        assert set(dict(quick.w4_sweeps)[name]) <= set(values), name
 
 
 def test_w5_reference_gradient_matches_the_closed_form():
