@@ -1239,28 +1239,42 @@ def run_w5_row(problem: Problem, sampled: bool, preset: Preset, log: Callable[[s
         "num_steps": problem.num_steps,
         "contenders": {},
     }
-    # Reference gradient: the independent hand-written loop in float64 (itself checked against the
-    # closed form's gradient for constant ω in tests/test_bench.py).
-    reference_forward = _w5_forwards(problem, sampled)["JAX loop"]
-    q0_64 = q0.astype(jnp.float64)
-    omega_64 = omega.astype(jnp.float64)
-    target_64 = target.astype(jnp.float64)
-    reference = jax.jit(jax.grad(lambda w: _loss(reference_forward(q0_64, w), target_64, jnp)))(
-        omega_64
-    )
-    reference = np.asarray(reference)
-    reference_norm = float(np.linalg.norm(reference))
-    del omega_64
+    forwards = _w5_forwards(problem, sampled)
 
-    for name, final in _w5_forwards(problem, sampled).items():
+    def gradient_of(final) -> Runner:
+        return _compiled(
+            lambda w: jax.grad(lambda v: _loss(final(q0, v), target, jnp))(w),
+            omega,
+        )
+
+    # Reference gradient: the independent hand-written loop in float64 (itself checked against the
+    # closed form's gradient for constant ω in tests/test_bench.py). In a float64 row that is the
+    # JAX loop contender's own gradient, compiled once for both.
+    loop_gradient = None
+    if problem.dtype == "float64":
+        loop_gradient = gradient_of(forwards["JAX loop"])
+        reference = np.asarray(_block(loop_gradient.run()))
+    else:
+        reference_forward = forwards["JAX loop"]
+        q0_64 = q0.astype(jnp.float64)
+        omega_64 = omega.astype(jnp.float64)
+        target_64 = target.astype(jnp.float64)
+        reference = jax.jit(jax.grad(lambda w: _loss(reference_forward(q0_64, w), target_64, jnp)))(
+            omega_64
+        )
+        reference = np.asarray(reference)
+        del omega_64
+    reference_norm = float(np.linalg.norm(reference))
+
+    for name, final in forwards.items():
         entry: dict[str, Any] = {"role": "jaxquat" if name == "jaxquat" else "peer"}
         record["contenders"][name] = entry
         try:
             forward = _compiled(lambda w, final=final: _loss(final(q0, w), target, jnp), omega)
-            gradient = _compiled(
-                lambda w, final=final: jax.grad(lambda v: _loss(final(q0, v), target, jnp))(w),
-                omega,
-            )
+            if name == "JAX loop" and loop_gradient is not None:
+                gradient = loop_gradient
+            else:
+                gradient = gradient_of(final)
             g = np.asarray(_block(gradient.run()))
             error = float(np.linalg.norm(g.astype(np.float64) - reference)) / max(
                 reference_norm, 1e-300
