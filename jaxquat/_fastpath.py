@@ -253,19 +253,27 @@ def _constant_trajectory(q0, rotation, num_steps, frame, renormalize_every):
     pass that writes the whole output in order, on every core XLA uses. These are the Lie–Euler steps'
     products, associated differently: each q_k is at most K + T/K products deep instead of k, so the
     round-off is smaller than stepping's. The scan's per-step write of an `(N, 4)` slice ran at less
-    than half the speed (issue 8, W2). Q_j is renormalised at every block when `renormalize_every` is
-    set (a block is ≤ √(T + 1) steps, well inside any renormalisation interval's purpose).
+    than half the speed (issue 8, W2).
+
+    Renormalisation: rotations keep the norm, so stepping's q_k is r^k ⊗ q₀ before the first
+    renormalisation (step `renormalize_every`) and r^k ⊗ q₀/|q₀| from it on; the rows from that step on
+    are scaled by 1/|q₀| (values and derivatives, including the radial part of dq₀, as stepping's).
+    Each Q_j is rescaled to |q₀| against round-off drift.
     """
     length = num_steps + 1
     block = max(1, math.isqrt(length))
     num_blocks = -(-length // block)
     identity = tuple(jnp.full_like(q0[0], value) for value in (1.0, 0.0, 0.0, 0.0))
     powers, step_block = _powers(identity, rotation, block, frame)  # P_i = r^i, and r^K
+    every = renormalize_every
+    renormalized = every is not None and every <= num_steps
+    norm0 = jnp.sqrt(sum(c * c for c in q0))
 
     def advance_block(c, _):
         nxt = _act_soa(c, step_block, frame)
-        if renormalize_every is not None:
-            nxt = _normalize(nxt)
+        if renormalized:
+            size = jnp.sqrt(sum(a * a for a in nxt))
+            nxt = tuple(a * (norm0 / size) for a in nxt)
         return nxt, c
 
     _, starts = lax.scan(advance_block, q0, None, length=num_blocks)  # Q_j
@@ -273,8 +281,12 @@ def _constant_trajectory(q0, rotation, num_steps, frame, renormalize_every):
     p = tuple(expand(a, 0) for a in powers)  # (1, K, *batch)
     q = tuple(expand(a, 1) for a in starts)  # (J, 1, *batch)
     out = _stack(_multiply_soa(p, q) if frame == "world" else _multiply_soa(q, p))
-    out = out.reshape((num_blocks * block,) + out.shape[2:])
-    return out[:length]
+    out = out.reshape((num_blocks * block,) + out.shape[2:])[:length]
+    if renormalized:
+        steps = jnp.arange(length).reshape((length,) + (1,) * (norm0.ndim + 1))
+        factor = jnp.where(steps >= every, 1.0 / norm0[None, ..., None], 1.0)
+        out = out * factor.astype(out.dtype)
+    return out
 
 
 def _sampled_step(h, series: bool, frame: str):
