@@ -410,18 +410,15 @@ def _constant_final_jvp(frame, num_steps, renormalize_every, unroll, primals, ta
         start, dstart = jax.jvp(_normalize, (q0,), (dq0,))
     else:
         start, dstart = q0, dq0
-    if frame == "world":
-        zeta = multiply(dr, conjugate(r))[..., 1:]  # ṙ ⊗ r̄ (pure)
-        spin = jnp.einsum("...ij,...j->...i", total, zeta)
-        rotated = jnp.concatenate([jnp.zeros_like(spin[..., :1]), spin], axis=-1)
-        # r^T = q_T ⊗ start⁻¹.
-        tangent = multiply(rotated, q_final) + multiply(q_final, multiply(inverse(start), dstart))
-    else:
-        zeta = multiply(conjugate(r), dr)[..., 1:]  # r̄ ⊗ ṙ (pure)
-        spin = jnp.einsum("...ji,...j->...i", total, zeta)  # Hᵀ ζ
-        rotated = jnp.concatenate([jnp.zeros_like(spin[..., :1]), spin], axis=-1)
-        # r^T = start⁻¹ ⊗ q_T.
-        tangent = multiply(q_final, rotated) + multiply(multiply(dstart, inverse(start)), q_final)
+    world = frame == "world"
+    # ζ = ṙ ⊗ r̄ (world) or r̄ ⊗ ṙ (body), pure; the sum is H ζ (world) or Hᵀ ζ (body).
+    zeta = (multiply(dr, conjugate(r)) if world else multiply(conjugate(r), dr))[..., 1:]
+    spin = jnp.einsum("...ij,...j->...i" if world else "...ji,...j->...i", total, zeta)
+    spin = jnp.concatenate([jnp.zeros_like(spin[..., :1]), spin], axis=-1)
+    if world:  # r^T = q_T ⊗ start⁻¹
+        tangent = multiply(spin, q_final) + multiply(q_final, multiply(inverse(start), dstart))
+    else:  # r^T = start⁻¹ ⊗ q_T
+        tangent = multiply(q_final, spin) + multiply(multiply(dstart, inverse(start)), q_final)
     return q_final, tangent
 
 
@@ -507,19 +504,13 @@ def _integrate_fast(
         # Constant ω: one step rotation, computed once (exact cos/sin, series-switched at 0), and a
         # structure-of-arrays carry; unrolled steps fuse into one pass over the bodies (W1: ~2-3x).
         # When saving every step the loop is bound by the output and unrolling only costs.
-        rotation = _exp_soa(
-            _split(jnp.broadcast_to(omega.astype(dtype), batch + (3,)) * h, 3), False
-        )
-
-        def constant_step(carry, _):
-            return _act_soa(carry, rotation, frame)
-
+        omega = jnp.broadcast_to(omega.astype(dtype), batch + (3,))
         if save == "all":
+            rotation = _exp_soa(_split(omega * h, 3), False)
             return _constant_trajectory(
                 _split(q0, 4), rotation, num_steps, frame, renormalize_every
             )
-        omega_b = jnp.broadcast_to(omega.astype(dtype), batch + (3,))
-        return _constant_final(q0, omega_b, h, frame, num_steps, renormalize_every, unroll)
+        return _constant_final(q0, omega, h, frame, num_steps, renormalize_every, unroll)
 
     samples = omega.omegas
     # Sample k is used on step k exactly when the sampling grid is the integration grid; else the
@@ -538,37 +529,23 @@ def _integrate_fast(
     xs = jnp.broadcast_to(xs, (num_steps,) + batch + (3,))
     small = jnp.max(jnp.sum(xs * xs, axis=-1)) * (h * h) <= SERIES_MAX_THETA_SQ
 
-    def sampled_step(series):
+    def sampled_run(series, xs):
         # Sampled ω: an (N, 4) carry and one step per iteration measured fastest (each step reads
         # its own samples, so there is no arithmetic to fuse across steps).
-        def step(carry, x):
-            rotation = _stack(_exp_soa(_split(x * h, 3), series))
-            return _stack(_act_soa(_split(carry, 4), _split(rotation, 4), frame))
-
-        return step
+        if save == "final":
+            return _sampled_final(
+                q0, xs, h, series, frame, num_steps, renormalize_every, checkpoint
+            )
+        return run(_sampled_step(h, series, frame), q0, xs, 1)
 
     def on_grid(xs):
-        if save == "final":
-            return lax.cond(
-                small,
-                lambda xs: _sampled_final(
-                    q0, xs, h, True, frame, num_steps, renormalize_every, checkpoint
-                ),
-                lambda xs: _sampled_final(
-                    q0, xs, h, False, frame, num_steps, renormalize_every, checkpoint
-                ),
-                xs,
-            )
         return lax.cond(
-            small,
-            lambda xs: run(sampled_step(True), q0, xs, 1),
-            lambda xs: run(sampled_step(False), q0, xs, 1),
-            xs,
+            small, functools.partial(sampled_run, True), functools.partial(sampled_run, False), xs
         )
 
     def off_grid(xs):
         gathered = jnp.take(samples, indices, axis=0)
         gathered = jnp.broadcast_to(gathered, (num_steps,) + batch + (3,))
-        return run(sampled_step(False), q0, gathered, 1)
+        return run(_sampled_step(h, False, frame), q0, gathered, 1)
 
     return lax.cond(aligned, on_grid, off_grid, xs)
