@@ -39,13 +39,17 @@ UNROLL = 8
 
 
 def _series_coefficients(dtype, kind: str) -> tuple[float, ...]:
-    """Taylor coefficients in θ² of cos(θ/2) (`kind="cos"`) or sin(θ/2)/θ (`"sinc"`), truncated where
-    the next term is below round-off at θ² = SERIES_MAX_THETA_SQ."""
+    """Taylor coefficients in θ² of cos(θ/2) (`kind="cos"`), sin(θ/2)/θ (`"sinc"`) or 2 d/d(θ²) of
+    sin(θ/2)/θ (`"slope"`), truncated where the next term is below round-off at
+    θ² = SERIES_MAX_THETA_SQ."""
     eps = float(jnp.finfo(dtype).eps)
     coefficients = []
     for n in range(20):
         if kind == "cos":
             c = (-1.0) ** n / (4.0**n * math.factorial(2 * n))
+        elif kind == "slope":  # 2 d/d(θ²) of sin(θ/2)/θ
+            m = n + 1
+            c = 2.0 * m * (-1.0) ** m / (2.0 ** (2 * m + 1) * math.factorial(2 * m + 1))
         else:
             c = (-1.0) ** n / (2.0 ** (2 * n + 1) * math.factorial(2 * n + 1))
         if n > 1 and abs(c) * SERIES_MAX_THETA_SQ**n < 0.01 * eps * abs(coefficients[0]):
@@ -299,43 +303,279 @@ def _sampled_step(h, series: bool, frame: str):
     return step
 
 
-def _plain_final(step, carry, xs, num_steps, renormalize_every):
-    """`num_steps` steps as one flat scan (renormalised after every `renormalize_every`-th step by an
-    outer scan over those blocks): the fastest forward loop, nothing stored for reverse mode."""
+def _over_steps(body, carry, num_steps: int, renormalize_every, at_renormalization, reverse=False):
+    """`carry = body(carry, k)` for the steps k = 0 … T − 1 (in reverse order if `reverse`), with
+    `carry = at_renormalization(carry, j)` after step (j + 1)·every, j = 0 … ⌊T/every⌋ − 1 (before it,
+    going backwards): flat scans over the step numbers, with an outer scan over the blocks."""
     every = renormalize_every
-    if every is None or every > num_steps:
-        return lax.scan(lambda c, x: (step(c, x), None), carry, xs)[0]
-    blocks, tail = divmod(num_steps, every)
-    head = xs[: blocks * every].reshape((blocks, every) + xs.shape[1:])
 
-    def block(c, block_xs):
-        return _normalize(lax.scan(lambda c, x: (step(c, x), None), c, block_xs)[0]), None
+    def steps(c, start, length):
+        # A fori_loop: k derives from the loop counter (a scan over an array of step numbers, which
+        # XLA reads from memory, measured ~5-10% slower).
+        last = start + length - 1
+        return lax.fori_loop(0, length, lambda i, c: body(c, last - i if reverse else start + i), c)
 
-    carry = lax.scan(block, carry, head)[0] if blocks > 1 else block(carry, head[0])[0]
-    if tail:
-        carry = lax.scan(lambda c, x: (step(c, x), None), carry, xs[blocks * every :])[0]
+    blocks = _renormalized_blocks(num_steps, every)
+    if blocks == 0:
+        return steps(carry, 0, num_steps)
+    tail = num_steps - blocks * every
+    if reverse and tail:
+        carry = steps(carry, blocks * every, tail)
+
+    def block(c, j):
+        if reverse:
+            return steps(at_renormalization(c, j), j * every, every), None
+        return at_renormalization(steps(c, j * every, every), j), None
+
+    carry = lax.scan(block, carry, jnp.arange(blocks), reverse=reverse)[0]
+    if not reverse and tail:
+        carry = steps(carry, blocks * every, tail)
     return carry
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(3, 4, 5, 6, 7))
-def _sampled_final(q0, xs, h, series, frame, num_steps, renormalize_every, checkpoint):
-    """The final state of the sampled Lie–Euler run.
+def _renormalized_blocks(num_steps: int, renormalize_every: int | None) -> int:
+    """How many renormalisations a run makes (after steps k·every, k = 1 … blocks)."""
+    every = renormalize_every
+    return 0 if every is None or every > num_steps else num_steps // every
 
-    Evaluated, it is one flat scan (`_plain_final`). Differentiated (jvp, and through it grad), it is
-    the checkpointed nested scan of `_run_final`, whose reverse mode stores O(√T) states instead of T:
-    the same steps, so the same values; only the loop structure differs. The nesting copies each chunk
-    of samples, which costs the plain evaluation ~15% (W3), hence the split.
+
+def _read(samples, indices):
+    """The sample of step k: samples[k], or samples[indices[k]] (a dynamic slice each, no gathered
+    copy; the second lookup costs ~20% at N = 10⁵, so on the grid `indices` is None)."""
+
+    def read(k):
+        if indices is not None:
+            k = lax.dynamic_index_in_dim(indices, k, keepdims=False)
+        return lax.dynamic_index_in_dim(samples, k, keepdims=False)
+
+    return read
+
+
+def _exp_and_slope(phi, series: bool):
+    """exp(φ) (structure of arrays) with S = sin(θ/2)/θ and S₂ = 2 dS/d(θ²), θ = |φ|, from which
+    d exp(φ)[dφ] = (−½ S ⟨φ, dφ⟩, S dφ + S₂ ⟨φ, dφ⟩ φ)."""
+    x, y, z = phi
+    theta_sq = x * x + y * y + z * z
+    real, ix, iy, iz = _exp_soa(phi, series)
+    slope = _horner(_series_coefficients(theta_sq.dtype, "slope"), theta_sq)
+    if series:
+        sinc = _horner(_series_coefficients(theta_sq.dtype, "sinc"), theta_sq)
+    else:
+        sinc = sinc_half(theta_sq)
+        # 2 dS/d(θ²) = (cos(θ/2)/2 − S)/θ², which cancels for small θ: the series up to θ² = 0.25.
+        near = theta_sq <= SERIES_MAX_THETA_SQ
+        safe = jnp.where(near, 1.0, theta_sq)
+        slope = jnp.where(near, slope, (0.5 * real - sinc) / safe)
+    return (real, ix, iy, iz), sinc, slope
+
+
+def _conjugate_soa(q):
+    w, x, y, z = q
+    return w, -x, -y, -z
+
+
+def _dot_soa(a, b):
+    return sum(u * v for u, v in zip(a, b, strict=True))
+
+
+def _sampled_tangent(
+    q0, samples, h, indices, dq0, dsamples, dh, series, frame, num_steps, renormalize_every
+):
+    """dq_T of the sampled run for tangents (dq₀, dsamples, dh) (`dh` may be None): one forward scan
+    carrying (q, dq), with dq_k = d r_k ⊗ q_(k−1) + r_k ⊗ dq_(k−1) (world frame) and the tangent of
+    q ↦ q/|q| at each renormalisation. (q and dq are separate carries: JAX transposes this map for
+    second derivatives, and only dq is linear.)"""
+    read, read_tangent = _read(samples, indices), _read(dsamples, indices)
+
+    def step(carry, k):
+        q, dq = (_split(c, 4) for c in carry)
+        xv = _split(read(k), 3)
+        phi = tuple(h * c for c in xv)
+        dphi = tuple(h * c for c in _split(read_tangent(k), 3))
+        if dh is not None:
+            dphi = tuple(a + dh * c for a, c in zip(dphi, xv, strict=True))
+        r, sinc, slope = _exp_and_slope(phi, series)
+        inner = _dot_soa(phi, dphi)
+        dr = (-0.5 * sinc * inner,) + tuple(
+            sinc * d + (slope * inner) * p for d, p in zip(dphi, phi, strict=True)
+        )
+        first, second = (dr, q), (r, dq)
+        if frame == "body":
+            first, second = (q, dr), (dq, r)
+        dq = tuple(
+            a + b for a, b in zip(_multiply_soa(*first), _multiply_soa(*second), strict=True)
+        )
+        return _stack(_act_soa(q, r, frame)), _stack(dq)
+
+    def normalize(carry, _):
+        q, dq = (_split(c, 4) for c in carry)
+        size = jnp.sqrt(_dot_soa(q, q))
+        unit = tuple(a / size for a in q)
+        radial = _dot_soa(unit, dq)
+        return _stack(unit), _stack(
+            tuple((d - radial * u) / size for d, u in zip(dq, unit, strict=True))
+        )
+
+    carry = tuple(jnp.broadcast_arrays(q0, dq0))
+    return _over_steps(step, carry, num_steps, renormalize_every, normalize)[1]
+
+
+def _sampled_adjoint(
+    q0, q_final, samples, h, indices, cotangent, series, frame, num_steps, renormalize_every
+):
+    """The cotangents of (samples, h, q₀) for the cotangent of q_T, by one reverse scan that steps back
+    with the inverse rotations (q_(k−1) = r̄_k ⊗ q_k, world frame): nothing is stored on the way forward.
+
+    Transposing dq_k = d r_k ⊗ q_(k−1) + r_k ⊗ dq_(k−1): with λ the cotangent of q_k,
+    λ_(k−1) = r̄_k ⊗ λ and μ = λ ⊗ q̄_(k−1) is the cotangent of r_k (⟨a ⊗ b, c⟩ = ⟨b, ā ⊗ c⟩ =
+    ⟨a, c ⊗ b̄⟩); through d exp, the cotangent of φ_k is S μ_v + (−½ S μ_w + S₂ ⟨φ, μ_v⟩) φ.
+    At a renormalisation q = q̃/|q̃| the cotangent becomes (λ − q⟨q, λ⟩)/|q̃|, with |q̃| = |q₀| at the first
+    one and 1 after it (rotations keep the norm). The reconstruction and the forward run agree to
+    round-off (O(T ε) relative). Each step adds its cotangent into the carried output at its sample's
+    index, in place.
+
+    `lax.optimization_barrier` keeps XLA:CPU from fusing the step rotation and the new carry into every
+    consumer (it recomputed the exponential once per output component; 1.8x slower).
     """
-    return _plain_final(_sampled_step(h, series, frame), q0, xs, num_steps, renormalize_every)
+    norm0 = jnp.sqrt(jnp.sum(q0 * q0, axis=-1))
+    read = _read(samples, indices)
+
+    def step(carry, k):
+        state, weight, total = carry
+        xv = _split(read(k), 3)
+        phi = tuple(h * c for c in xv)
+        r, sinc, slope = _exp_and_slope(phi, series)
+        coefficients = _split(lax.optimization_barrier(_stack(r + (sinc, slope))), 6)
+        r, sinc, slope = coefficients[:4], coefficients[4], coefficients[5]
+        q, lam = _split(state, 4), _split(state[..., 4:], 4)
+        back = _conjugate_soa(r)
+        state = lax.optimization_barrier(
+            _stack(_act_soa(q, back, frame) + _act_soa(lam, back, frame))
+        )
+        q_previous = _conjugate_soa(_split(state, 4))
+        mu = _multiply_soa(lam, q_previous) if frame == "world" else _multiply_soa(q_previous, lam)
+        mu_w, mu_v = mu[0], mu[1:]
+        along = -0.5 * sinc * mu_w + slope * _dot_soa(phi, mu_v)
+        g = tuple(sinc * m + along * p for m, p in zip(mu_v, phi, strict=True))
+        scaled = _stack(tuple(h * c for c in g))
+        if indices is None:  # sample k is step k's alone
+            total = lax.dynamic_update_index_in_dim(total, scaled, k, 0)
+        else:  # a held sample serves several steps
+            index = lax.dynamic_index_in_dim(indices, k, keepdims=False)
+            here = lax.dynamic_index_in_dim(total, index, keepdims=False)
+            total = lax.dynamic_update_index_in_dim(total, here + scaled, index, 0)
+        return state, weight + _dot_soa(xv, g), total
+
+    def unnormalize(carry, j):
+        state, weight, total = carry
+        size = jnp.where(j == 0, norm0, jnp.ones_like(norm0))
+        q, lam = _split(state, 4), _split(state[..., 4:], 4)
+        radial = _dot_soa(q, lam)
+        state = _stack(
+            tuple(a * size for a in q)
+            + tuple((b - radial * a) / size for a, b in zip(q, lam, strict=True))
+        )
+        return state, weight, total
+
+    state = jnp.concatenate(jnp.broadcast_arrays(q_final, cotangent), axis=-1)
+    carry = (state, jnp.zeros(state.shape[:-1], state.dtype), jnp.zeros_like(samples))
+    state, weight, total = _over_steps(
+        step, carry, num_steps, renormalize_every, unnormalize, reverse=True
+    )
+    return total, jnp.sum(weight), state[..., 4:]
 
 
-@_sampled_final.defjvp
-def _sampled_final_jvp(series, frame, num_steps, renormalize_every, checkpoint, primals, tangents):
-    def nested(q0, xs, h):
-        step = _sampled_step(h, series, frame)
-        return _run_final(step, q0, xs, num_steps, renormalize_every, checkpoint, 1)
+@functools.partial(jax.custom_jvp, nondiff_argnums=(4, 5, 6, 7))
+def _sampled_final(q0, samples, h, indices, series, frame, num_steps, renormalize_every):
+    """The final state of the sampled Lie–Euler run, step k using samples[indices[k]]: one flat scan.
 
-    return jax.jvp(nested, primals, tangents)
+    Derivatives are exact (to round-off) and store nothing per step, in both modes:
+
+    - forward mode (jvp, jacfwd) runs `_sampled_tangent`, a scan carrying (q, dq);
+    - reverse mode (grad, jacrev) runs `_sampled_adjoint`, which steps back through the run with the
+      inverse rotations instead of storing or recomputing the states (memory O(N), no checkpointing).
+
+    The two are tied together as a linear map with a custom transpose through
+    `lax.custom_linear_solve` (JAX has no public `custom_transpose`): with M the strictly
+    block-lower-triangular operator that writes L(dsamples, dh, dq₀) = dq_T into an extra slot,
+    (I − M)⁻¹ = I + M because M² = 0, so "solving" (I − M) x = (…, 0) is applying I + M, and its
+    transpose I + Mᵀ is the adjoint scan. Being a true inverse pair, the primitive's own rules also give
+    correct second derivatives (forward or reverse over reverse).
+    """
+    step = _sampled_step(h, series, frame)
+    read = _read(samples, indices)
+    return _over_steps(
+        lambda c, k: step(c, read(k)),
+        q0,
+        num_steps,
+        renormalize_every,
+        lambda c, _: _normalize(c),
+    )
+
+
+def _sampled_final_jvp(series, frame, num_steps, renormalize_every, primals, tangents):
+    from jax.custom_derivatives import SymbolicZero
+
+    q0, samples, h, indices = primals
+    q_final = _sampled_final(q0, samples, h, indices, series, frame, num_steps, renormalize_every)
+    names = tuple(
+        name
+        for name, t in zip(("q0", "samples", "h"), tangents[:3], strict=True)
+        if not isinstance(t, SymbolicZero)
+    )
+    values = tuple(t for t in tangents[:3] if not isinstance(t, SymbolicZero))
+    primal = {"q0": q0, "samples": samples, "h": h}
+    # custom_linear_solve transposes only right-hand sides that are linear in the tangents, so the
+    # output slot's zero is made from a live tangent (one entry of it unless it is q₀'s: the transpose
+    # then touches one entry).
+    seed = values[0] if names[0] == "q0" else values[-1][(0,) * values[-1].ndim]
+    zero = jnp.zeros(q_final.shape, q_final.dtype) * seed.astype(q_final.dtype)
+
+    def tangent_map(inputs):
+        given = dict(zip(names, inputs, strict=True))
+        return _sampled_tangent(
+            q0,
+            samples,
+            h,
+            indices,
+            given.get("q0", jnp.zeros_like(q0)),
+            given.get("samples", jnp.zeros_like(samples)),
+            given.get("h"),
+            series,
+            frame,
+            num_steps,
+            renormalize_every,
+        )
+
+    def matvec(x):
+        # I − M. The "0 ·" terms tie every slot to the primals, so that the primitive's rule for
+        # derivatives w.r.t. its constants gives every slot a tangent (it leaves slots without one
+        # as known zeros, which reverse over reverse cannot transpose).
+        *inputs, out = x
+        tied = tuple(
+            a + 0.0 * primal[n].astype(a.dtype) for a, n in zip(inputs, names, strict=True)
+        )
+        return tied + (out - tangent_map(inputs) + 0.0 * q_final,)
+
+    def solve(_, b):  # (I − M)⁻¹ = I + M
+        *inputs, out = b
+        return tuple(inputs) + (out + tangent_map(inputs),)
+
+    def transpose_solve(_, b):  # (I + M)ᵀ = I + Mᵀ
+        *inputs, out = b
+        total, weight, lam = _sampled_adjoint(
+            q0, q_final, samples, h, indices, out, series, frame, num_steps, renormalize_every
+        )
+        cotangents = {"q0": lam, "samples": total, "h": weight}
+        return tuple(
+            a + cotangents[n].astype(a.dtype) for a, n in zip(inputs, names, strict=True)
+        ) + (out,)
+
+    x = lax.custom_linear_solve(matvec, values + (zero,), solve, transpose_solve)
+    return q_final, x[-1]
+
+
+_sampled_final.defjvp(_sampled_final_jvp, symbolic_zeros=True)
 
 
 def _matmul3(a, b):
@@ -512,40 +752,39 @@ def _integrate_fast(
             )
         return _constant_final(q0, omega, h, frame, num_steps, renormalize_every, unroll)
 
-    samples = omega.omegas
-    # Sample k is used on step k exactly when the sampling grid is the integration grid; else the
-    # general path's per-step lookup (the module itself) is used, inside the same fast loop.
+    # Step k uses sample indices[k], found by the module's own zero-order-hold rule applied to a probe
+    # whose k-th sample is k: on the integration grid indices[k] = k, off it the same loop reads the
+    # held samples (no gathered copy of the samples either way).
     times = t0.astype(time_dtype) + jnp.arange(num_steps, dtype=time_dtype) * dt.astype(time_dtype)
-    # The module's own zero-order-hold rule, applied to a probe whose k-th sample is k.
-    length = samples.shape[0]
+    length = omega.omegas.shape[0]
     probe = eqx.tree_at(
         lambda source: source.omegas,
         omega,
         jnp.broadcast_to(jnp.arange(length, dtype=time_dtype)[:, None], (length, 3)),
     )
     indices = jax.vmap(lambda t: probe(t)[0])(times).astype(jnp.int32)
-    aligned = jnp.all(indices == jnp.arange(num_steps, dtype=indices.dtype))
-    xs = samples if samples.shape[0] == num_steps else samples[:num_steps]
-    xs = jnp.broadcast_to(xs, (num_steps,) + batch + (3,))
-    small = jnp.max(jnp.sum(xs * xs, axis=-1)) * (h * h) <= SERIES_MAX_THETA_SQ
+    samples = jnp.broadcast_to(omega.omegas, (length,) + batch + (3,))
+    small = jnp.max(jnp.sum(samples * samples, axis=-1)) * (h * h) <= SERIES_MAX_THETA_SQ
 
-    def sampled_run(series, xs):
+    aligned = jnp.all(indices == jnp.arange(num_steps, dtype=indices.dtype))
+
+    def sampled_run(series, indices, samples):
         # Sampled ω: an (N, 4) carry and one step per iteration measured fastest (each step reads
         # its own samples, so there is no arithmetic to fuse across steps).
         if save == "final":
             return _sampled_final(
-                q0, xs, h, series, frame, num_steps, renormalize_every, checkpoint
+                q0, samples, h, indices, series, frame, num_steps, renormalize_every
             )
-        return run(_sampled_step(h, series, frame), q0, xs, 1)
+        step = _sampled_step(h, series, frame)
+        read = _read(samples, indices)
+        return run(lambda c, k: step(c, read(k)), q0, jnp.arange(num_steps), 1)
 
-    def on_grid(xs):
+    def on_grid(samples):
         return lax.cond(
-            small, functools.partial(sampled_run, True), functools.partial(sampled_run, False), xs
+            small,
+            functools.partial(sampled_run, True, None),
+            functools.partial(sampled_run, False, None),
+            samples,
         )
 
-    def off_grid(xs):
-        gathered = jnp.take(samples, indices, axis=0)
-        gathered = jnp.broadcast_to(gathered, (num_steps,) + batch + (3,))
-        return run(_sampled_step(h, False, frame), q0, gathered, 1)
-
-    return lax.cond(aligned, on_grid, off_grid, xs)
+    return lax.cond(aligned, on_grid, functools.partial(sampled_run, False, indices), samples)
