@@ -662,7 +662,9 @@ def _build_parser() -> argparse.ArgumentParser:
     simulate.add_argument("--bodies", type=_positive_int, help="number of bodies (10000)")
     simulate.add_argument("--steps", type=_positive_int, help="number of steps (1000)")
     simulate.add_argument("--dt", type=_positive_float, help="time step in s (0.01)")
-    simulate.add_argument("--method", help="integrator (euler, midpoint, magnus4, cf4, naive, rk4)")
+    simulate.add_argument(
+        "--method", help="integrator (euler, midpoint, magnus4, magnus6, cf4, naive, rk4)"
+    )
     simulate.add_argument("--frame", choices=("world", "body"), help="frame of ω")
     simulate.add_argument(
         "--omega-scale",

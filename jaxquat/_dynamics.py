@@ -36,7 +36,7 @@ from ._numerics import (
 )
 from ._rotation import from_matrix, rotate
 
-# Methods usable with a state-dependent angular velocity ("magnus4" needs ω(t) independent of the state).
+# Methods usable with a state-dependent angular velocity (the Magnus methods need ω(t) independent of the state).
 _METHODS = ("euler", "midpoint", "cf4", "naive", "rk4")
 
 

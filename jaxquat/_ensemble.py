@@ -600,7 +600,7 @@ def simulate_ensemble(
     if method is None:
         method = "cf4" if dynamic else "euler"
     method = check_choice(
-        method, [m for m in METHODS if m != "magnus4"] if dynamic else METHODS, "method"
+        method, [m for m in METHODS if not m.startswith("magnus")] if dynamic else METHODS, "method"
     )
 
     num_bodies = math.prod(batch)

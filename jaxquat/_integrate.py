@@ -13,6 +13,7 @@ and the public `integrate` and `sampled` built on them.
 Methods (NUMERICS.md §2): `"euler"` (Lie–Euler = the seed's corrected step with ω at the step start,
 order 1, exact for piecewise-constant ω), `"midpoint"` (exponential midpoint / RKMK2, order 2),
 `"magnus4"` (fourth-order Magnus with two Gauss points and one commutator; ω must not depend on q),
+`"magnus6"` (sixth-order Magnus with three Gauss points and three commutators; ω must not depend on q),
 `"cf4"` (the commutator-free fourth-order method of Celledoni, Marthinsen and Owren 2003), and the
 baselines `"naive"` (normalised Euler with the plain rate) and `"rk4"` (classical RK4 in ℝ⁴, then
 normalise).
@@ -49,20 +50,30 @@ from ._numerics import (
 )
 from ._rotation import from_rotvec
 
-LIE_METHODS = ("euler", "midpoint", "magnus4", "cf4")
+LIE_METHODS = ("euler", "midpoint", "magnus4", "magnus6", "cf4")
 METHODS = LIE_METHODS + ("naive", "rk4")
 # Classical order of each method on the orientation (and of its matching RK scheme on x).
-ORDERS = {"euler": 1, "midpoint": 2, "magnus4": 4, "cf4": 4, "naive": 1, "rk4": 4}
+ORDERS = {
+    "euler": 1,
+    "midpoint": 2,
+    "magnus4": 4,
+    "magnus6": 6,
+    "cf4": 4,
+    "naive": 1,
+    "rk4": 4,
+}
 
 _SQRT3 = math.sqrt(3.0)
 _GAUSS_1 = 0.5 - _SQRT3 / 6.0
 _GAUSS_2 = 0.5 + _SQRT3 / 6.0
+_SQRT15 = math.sqrt(15.0)
 # The stage times t + c·h at which each method calls the field, in call order.
 _STAGE_FRACTIONS = {
     "euler": (0.0,),
     "naive": (0.0,),
     "midpoint": (0.0, 0.5),
     "magnus4": (_GAUSS_1, _GAUSS_2),
+    "magnus6": (0.5 - _SQRT15 / 10.0, 0.5, 0.5 + _SQRT15 / 10.0),
     "cf4": (0.0, 0.5, 0.5, 1.0),
     "rk4": (0.0, 0.5, 0.5, 1.0),
 }
@@ -117,6 +128,16 @@ def _call_field(field: Callable, t, q: Array, x: Any) -> tuple[Array, Any]:
     return omega.astype(q.dtype), g
 
 
+def _stage_rates(
+    field: Callable, t, h, q: Array, fractions: tuple[float, ...]
+) -> tuple[Array, ...]:
+    """ω at the times t + cᵢh with q frozen (the Magnus methods' Gauss points), as one vmapped
+    evaluation: XLA:CPU runs one batched set of kernels instead of one set per point."""
+    times = jnp.stack([t + c * h for c in fractions])
+    rates = jax.vmap(lambda s: _call_field(field, s, q, None)[0])(times)
+    return tuple(rates[i] for i in range(len(fractions)))
+
+
 # ----------------------------------------------------------------------------------------------------
 # One step
 
@@ -143,11 +164,32 @@ def _lie_parts(method: str, field: Callable, t, q: Array, x: Any, h, frame: str)
                 "`method`='magnus4' needs a state-independent angular velocity and cannot carry an "
                 "additional state `x`; use 'cf4'."
             )
-        f1, _ = _call_field(field, t + _GAUSS_1 * h, q, x)
-        f2, _ = _call_field(field, t + _GAUSS_2 * h, q, x)
+        f1, f2 = _stage_rates(field, t, h, q, _STAGE_FRACTIONS["magnus4"])
         # Left action (world): [A₂, A₁] with A = ½ω̃ gives ω₂ × ω₁; right action (body): ω₁ × ω₂.
         commutator = cross(f2, f1) if frame == "world" else cross(f1, f2)
         phi = (0.5 * hq) * (f1 + f2) + ((_SQRT3 / 12.0) * hq * hq) * commutator
+        return (phi,), None
+    if method == "magnus6":
+        if x is not None:
+            raise ValueError(
+                "`method`='magnus6' needs a state-independent angular velocity and cannot carry an "
+                "additional state `x`; use 'cf4'."
+            )
+        f1, f2, f3 = _stage_rates(field, t, h, q, _STAGE_FRACTIONS["magnus6"])
+
+        # Blanes, Casas, Oteo & Ros (2009), Phys. Rep. 470, §5.2, with three Gauss points:
+        # α₁ = hA₂, α₂ = (√15/3)h(A₃ − A₁), α₃ = (10/3)h(A₃ − 2A₂ + A₁), C₁ = [α₁, α₂],
+        # C₂ = −[α₁, 2α₃ + C₁]/60, Ω = α₁ + α₃/12 + [−20α₁ − α₃ + C₁, α₂ + C₂]/240.
+        # The bracket of rotation vectors is a × b for the left action (world), b × a for the right.
+        def bracket(a, b):
+            return cross(a, b) if frame == "world" else cross(b, a)
+
+        a1 = hq * f2
+        a2 = ((_SQRT15 / 3.0) * hq) * (f3 - f1)
+        a3 = ((10.0 / 3.0) * hq) * ((f3 - f2) - (f2 - f1))
+        c1 = bracket(a1, a2)
+        c2 = bracket(a1, 2.0 * a3 + c1) * (-1.0 / 60.0)
+        phi = a1 + (a3 * (1.0 / 12.0) + bracket(-20.0 * a1 - a3 + c1, a2 + c2) * (1.0 / 240.0))
         return (phi,), None
     if method == "cf4":
         # Celledoni, Marthinsen & Owren (2003), the 4-stage commutator-free method; on x: classical RK4.
@@ -204,9 +246,10 @@ def lie_step(
 
     **Arguments:**
 
-    - `method`: `"euler"`, `"midpoint"`, `"magnus4"`, `"cf4"`, `"naive"` or `"rk4"`. `"magnus4"` evaluates
-      ω at the two Gauss points with q frozen at the step start, so it is fourth order only for a
-      q-independent ω, and it does not accept an `x` (raises `ValueError`).
+    - `method`: `"euler"`, `"midpoint"`, `"magnus4"`, `"magnus6"`, `"cf4"`, `"naive"` or `"rk4"`.
+      `"magnus4"` and `"magnus6"` evaluate ω at the Gauss points with q frozen at the step start, so
+      they reach their order only for a q-independent ω, and they do not accept an `x` (raise
+      `ValueError`).
     - `field`: `field(t, q, x) -> (omega, g)`, ω of shape `(..., 3)` broadcasting with `q`, `g` a pytree
       like `x` (or anything when `x` is `None`).
     - `t`: time at the step start (any float dtype; stage times are `t + c h`).
@@ -409,8 +452,8 @@ def sampled(omegas: ArrayLike, dt: ArrayLike, *, t0: ArrayLike = 0.0) -> Sampled
     """An angular-velocity callable `omega(t, q)` that holds `omegas[k]` on step k (zero-order hold).
 
     With `integrate(..., dt, method="euler")` on the same grid the integration is exact (to round-off):
-    each step is the exact rotation by `omegas[k] * dt`. The interior stages of `"midpoint"` and
-    `"magnus4"` see the same sample and are exact too; methods with a stage at the step end (`"cf4"`,
+    each step is the exact rotation by `omegas[k] * dt`. The interior stages of `"midpoint"`,
+    `"magnus4"` and `"magnus6"` see the same sample and are exact too; methods with a stage at the step end (`"cf4"`,
     `"rk4"`) see the next sample there.
 
     **Arguments:**
@@ -524,6 +567,7 @@ def integrate(
     | `"euler"` | 1 (exact for piecewise-constant ω) | 1 | yes |
     | `"midpoint"` (exponential midpoint, RKMK2) | 2 | 2 | yes |
     | `"magnus4"` (Gauss points + one commutator) | 4 | 2 | no (`ValueError`) |
+    | `"magnus6"` (3 Gauss points + 3 commutators) | 6 | 3 | no (`ValueError`) |
     | `"cf4"` (Celledoni–Marthinsen–Owren 2003) | 4 | 4 | yes |
     | `"naive"` (normalised Euler, plain rate; baseline) | 1 | 1 | yes |
     | `"rk4"` (RK4 in ℝ⁴ + normalise; baseline) | 4 | 4 | yes |
@@ -570,7 +614,7 @@ def integrate(
 
     **Errors:** a `ValueError` naming the argument for a bad `method`, `frame`, `save`, `save_every`,
     `num_steps`, a non-scalar `dt`/`t0`, an `omega` of the wrong shape, or a q-dependent `omega` with
-    `"magnus4"`.
+    `"magnus4"` or `"magnus6"`.
 
     Example:
     ```python
@@ -678,9 +722,9 @@ def _integrate(
             raise ValueError(f"`omega(t, q)` must return shape (..., 3); got shape {shape}.")
         batch = _broadcast_shapes(batch, shape[:-1], "omega(t, q)", shape)
         q0 = jnp.broadcast_to(q0, batch + (4,))
-        if method == "magnus4" and _depends_on_q(omega, t0, q0):
+        if method in ("magnus4", "magnus6") and _depends_on_q(omega, t0, q0):
             raise ValueError(
-                "`omega` depends on q, but `method`='magnus4' needs a q-independent angular velocity "
+                f"`omega` depends on q, but `method`='{method}' needs a q-independent angular velocity "
                 "ω(t) (it is evaluated at the Gauss points with q frozen); use 'cf4' or 'midpoint'."
             )
         source = omega

@@ -23,9 +23,9 @@ import jaxquat as jq
 from jaxquat._integrate import lie_step, scan_steps
 
 FRAMES = ["world", "body"]
-LIE = ["euler", "midpoint", "magnus4", "cf4"]
+LIE = ["euler", "midpoint", "magnus4", "magnus6", "cf4"]
 ALL = LIE + ["naive", "rk4"]
-ORDERS = {"euler": 1, "midpoint": 2, "magnus4": 4, "cf4": 4, "naive": 1, "rk4": 4}
+ORDERS = {"euler": 1, "midpoint": 2, "magnus4": 4, "magnus6": 6, "cf4": 4, "naive": 1, "rk4": 4}
 
 
 def angle(p, q):
@@ -81,7 +81,7 @@ def test_coning_closed_form_solves_the_kinematic_equation():
 @pytest.mark.parametrize("frame", FRAMES)
 def test_convergence_orders_on_coning(frame):
     """Acceptance 3: slope of log error vs log dt over 3 refinements, T = 2.3 (not a whole number of
-    periods): euler 1, midpoint 2, magnus4 4, cf4 4, naive 1, rk4 4, each within ±0.15.
+    periods): euler 1, midpoint 2, magnus4 4, magnus6 6, cf4 4, naive 1, rk4 4, each within ±0.15.
 
     The four resolutions run as one vmapped loop of `lie_step` (the step `integrate` scans; one
     compilation per method), and `integrate` is checked against it at the finest resolution."""
@@ -90,7 +90,8 @@ def test_convergence_orders_on_coning(frame):
     omega = CONING_OMEGA[frame]
     for method in ALL:
         # The naive step's O(h²) lag (θ³/12 per step) hides its first-order term at coarse steps.
-        base = 640 if method == "naive" else 40
+        # magnus6 reaches round-off within 8x refinement from 40 steps; it starts from 10.
+        base = {"naive": 640, "magnus6": 10}.get(method, 40)
         steps = np.array([base, 2 * base, 4 * base, 8 * base])
 
         def run(n, method=method):
@@ -111,7 +112,7 @@ def test_convergence_orders_on_coning(frame):
             method,
             errors,
         )  # still above round-off: the slope is meaningful
-        if method == "cf4" and frame == "world":
+        if method in ("cf4", "magnus6") and frame == "world":
             direct = jq.integrate(
                 CONE_Q0,
                 omega,
@@ -146,6 +147,7 @@ def _per_step_angle(method, theta):
         ("euler", "world"),
         ("midpoint", "body"),
         ("magnus4", "world"),
+        ("magnus6", "body"),
         ("cf4", "body"),
         ("naive", "world"),
         ("rk4", "body"),
@@ -171,8 +173,8 @@ def test_constant_omega_matches_each_methods_closed_form(method, frame, getkey):
 @pytest.mark.parametrize("frame", FRAMES)
 def test_piecewise_constant_sampled_omega_is_exact(frame, getkey):
     """Acceptance 3b: sampled ω + euler is exact to round-off (SciPy composition of the per-step
-    rotations, also with θ up to ~3 rad per step and t0 ≠ 0); the interior stages of midpoint and
-    magnus4 see the same sample, so they are exact too."""
+    rotations, also with θ up to ~3 rad per step and t0 ≠ 0); the interior stages of midpoint,
+    magnus4 and magnus6 see the same sample, so they are exact too."""
     steps, dt, t0 = 200, 0.05, 1000.3
     omegas = 20.0 * jax.random.normal(getkey(), (steps, 2, 3))
     q0 = random_unit(getkey(), (2,))
@@ -185,7 +187,7 @@ def test_piecewise_constant_sampled_omega_is_exact(frame, getkey):
         trajectory.append(current.as_quat())
     trajectory = np.roll(np.stack(trajectory), 1, axis=-1)  # xyzw -> wxyz
     source = jq.sampled(omegas, dt, t0=t0)
-    for method in ["euler", "midpoint", "magnus4"]:
+    for method in ["euler", "midpoint", "magnus4", "magnus6"]:
         qs = jq.integrate(q0, source, dt, steps, frame=frame, method=method, t0=t0)
         assert qs.shape == (steps + 1, 2, 4)
         assert_quat_close(qs, trajectory, atol=1e-12)
@@ -226,10 +228,11 @@ def test_lie_step_coupled_state_uses_consistent_stages(method):
     np.testing.assert_allclose(decay, stability**steps, rtol=1e-13)
 
 
-def test_lie_step_magnus4_rejects_a_coupled_state():
-    with pytest.raises(ValueError, match="magnus4"):
+@pytest.mark.parametrize("method", ["magnus4", "magnus6"])
+def test_lie_step_magnus_rejects_a_coupled_state(method):
+    with pytest.raises(ValueError, match=method):
         lie_step(
-            "magnus4",
+            method,
             lambda t, q, x: (jnp.zeros(3), x),
             0.0,
             jq.identity(),
@@ -382,7 +385,12 @@ def _tangent_basis(q):
 
 @pytest.mark.parametrize(
     "method,frame,source",
-    [("euler", "world", "constant"), ("cf4", "body", "coupled"), ("magnus4", "world", "callable")],
+    [
+        ("euler", "world", "constant"),
+        ("cf4", "body", "coupled"),
+        ("magnus4", "world", "callable"),
+        ("magnus6", "body", "callable"),
+    ],
 )
 def test_gradients_agree_with_finite_differences(method, frame, source, getkey):
     """Acceptance 4: d q_final / d(ω or the callable's parameters, q₀ tangentially, dt, t0) over 1,000
@@ -604,6 +612,8 @@ def test_bad_arguments_raise_value_errors_naming_them():
         jq.integrate(q0, lambda t, q: jnp.ones(2), 0.1, 10)
     with pytest.raises(ValueError, match="omega"):  # magnus4 needs a q-independent ω
         jq.integrate(q0, lambda t, q: q[..., 1:] + t, 0.1, 10, method="magnus4")
+    with pytest.raises(ValueError, match="magnus6"):
+        jq.integrate(q0, lambda t, q: q[..., 1:] + t, 0.1, 10, method="magnus6")
     with pytest.raises(ValueError, match="q0"):
         jq.integrate(jnp.ones(3), w, 0.1, 10)
     with pytest.raises(ValueError, match="num_steps"):
