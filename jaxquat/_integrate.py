@@ -596,7 +596,10 @@ def integrate(
       The exponential steps keep |q| = 1 to round-off; this removes the slow drift (7e-11 over 10⁶
       float64 steps).
     - `checkpoint`: bounded reverse-mode memory (nested scans, outer body checkpointed, chunks of ≈ √T):
-      `jax.grad` through 10⁵ steps × 1,000 bodies stores O(√T) states, not O(T).
+      `jax.grad` through 10⁵ steps × 1,000 bodies stores O(√T) states, not O(T). Not needed (and
+      ignored) for the final state of `"euler"` with a constant ω (closed-form derivative) or with
+      on-grid or held `sampled` ω (an adjoint that steps back with the inverse rotations): these
+      store no states at all.
     - `unroll`: unroll factor of the inner scans (speed only).
 
     **Returns:** the orientations, in the dtype of `q0`.
