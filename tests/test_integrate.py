@@ -645,8 +645,9 @@ def test_sampled_on_the_grid_equals_the_time_lookup(getkey):
 @pytest.mark.parametrize("frame", ["world", "body"])
 @pytest.mark.parametrize("renormalize_every", [None, 7, 30])
 def test_sampled_euler_forward_and_derivatives_agree(renormalize_every, frame, getkey):
-    """Sampled ω + euler, final state: evaluated it is one flat scan, differentiated it is the
-    checkpointed nested scan (_fastpath._sampled_final). Values agree with the composition of exact
+    """Sampled ω + euler, final state: evaluated it is one flat scan, differentiated it is a tangent
+    scan (forward mode) or an adjoint stepping back with inverse rotations (reverse mode;
+    _fastpath._sampled_final, more in test_sampled_derivatives.py). Values agree with the composition of exact
     step rotations; jacfwd, jacrev and central differences agree for the samples and q₀; the primal of
     jvp equals the plain evaluation."""
     steps, dt = 30, 0.07
