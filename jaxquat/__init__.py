@@ -99,6 +99,7 @@ from ._solvers import (
     LieCubicInterpolation as LieCubicInterpolation,
     LieEuler as LieEuler,
     Magnus4 as Magnus4,
+    Magnus6 as Magnus6,
     NormalizedEuler as NormalizedEuler,
     corrected_vector_field as corrected_vector_field,
     kinematic_vector_field as kinematic_vector_field,

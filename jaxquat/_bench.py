@@ -108,6 +108,7 @@ _W4_DENSE_TOLERANCES = (1e-7, 2e-8, 1.4e-8, 1e-8, 7e-9, 5e-9, 3.5e-9, 2.5e-9, 1.
 W4_DENSE_SWEEPS: tuple[tuple[str, tuple[float, ...]], ...] = (
     ("jaxquat integrate magnus4", _W4_DENSE_STEPS),
     ("jaxquat integrate magnus6", (64, 80, 88, 96, 104, 112, 128)),
+    ("jaxquat diffrax Magnus6", (64, 80, 88, 96, 104, 112, 128)),
     ("jaxquat integrate cf4", (256, 320, 352, 384, 416, 512)),
     ("jaxquat diffrax Magnus4", _W4_DENSE_STEPS),
     ("diffrax Tsit5 (stock)", _W4_DENSE_TOLERANCES + (1e-10,)),
@@ -147,7 +148,7 @@ class Preset:
     w5_sizes: tuple[int, ...]
     reference: bool  # also time the tuned hand-written JAX loop (not a peer; a yardstick)
     w4_methods: tuple[str, ...] = ("euler", "midpoint", "magnus4", "magnus6", "cf4")  # `integrate`
-    w4_solvers: tuple[str, ...] = ("LieEuler", "ExpMidpoint", "Magnus4", "CF4", "RKMK45")  # diffrax
+    w4_solvers: tuple[str, ...] = ("LieEuler", "ExpMidpoint", "Magnus4", "Magnus6", "CF4", "RKMK45")
     # W4 sweeps of single methods, by series name, instead of `w4_steps` / `w4_tolerances` (e.g.
     # dense around each method's crossing of the target error).
     w4_sweeps: tuple[tuple[str, tuple[float, ...]], ...] = ()
@@ -193,7 +194,7 @@ PRESETS: dict[str, Preset] = {
         reference=False,
         w2_check_bodies=512,
         w4_methods=("euler", "midpoint", "magnus4", "magnus6", "cf4"),
-        w4_solvers=("Magnus4", "RKMK45"),
+        w4_solvers=("Magnus4", "Magnus6", "RKMK45"),
         w4_sweeps=W4_DENSE_SWEEPS,
     ),
     "full": Preset(

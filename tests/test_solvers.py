@@ -244,6 +244,9 @@ def _orders(solver, frame):
         (jq.Magnus4(frame="body"), "body", 3.9, 4.2),
         (jq.Magnus4(frame="world"), "world", 3.9, 4.2),
         (jq.Magnus4(frame="world"), "body", 1.9, 2.1),  # wrong frame: order 2
+        (jq.Magnus6(frame="body"), "body", 5.85, 6.2),
+        (jq.Magnus6(frame="world"), "world", 5.85, 6.2),
+        (jq.Magnus6(frame="world"), "body", 1.9, 2.1),  # wrong frame: order 2
         (jq.CF4(), "body", 3.9, 4.2),
         (jq.RKMK45(), "body", 4.8, 5.6),
     ],
@@ -254,7 +257,7 @@ def test_orders_norm_and_dense_output(solver, frame, low, high):
     assert low <= order_back <= high, order_back
     assert norm_dev <= 1e-14
     assert dense_norm_dev <= 1e-12
-    if isinstance(solver, jq.RKMK45):
+    if isinstance(solver, jq.RKMK45) or (isinstance(solver, jq.Magnus6) and low > 5):
         assert dense_order >= 3.0, dense_order
 
 
@@ -399,7 +402,15 @@ def test_backsolve_adjoint():
 
 @pytest.mark.parametrize(
     "solver",
-    [jq.NormalizedEuler(), jq.LieEuler(), jq.ExpMidpoint(), jq.Magnus4(), jq.CF4(), jq.RKMK45()],
+    [
+        jq.NormalizedEuler(),
+        jq.LieEuler(),
+        jq.ExpMidpoint(),
+        jq.Magnus4(),
+        jq.Magnus6(),
+        jq.CF4(),
+        jq.RKMK45(),
+    ],
 )
 def test_float32_stays_float32(solver):
     f32 = jnp.float32
@@ -431,3 +442,40 @@ def test_float32_stays_float32(solver):
     assert np.max(np.abs(np.linalg.norm(np.asarray(q, np.float64), axis=-1) - 1.0)) < 1e-6
     exact = jq.from_rotvec(ts[:, None] * omega[None])
     assert np.max(angle(q.astype(jnp.float64), exact.astype(jnp.float64))) < 2e-2
+
+
+@pytest.mark.parametrize("frame", ["world", "body"])
+def test_magnus6_equals_integrate_magnus6(frame):
+    """The diffrax solver and `integrate(method="magnus6")` take the same step (to round-off), with
+    a tuple state whose x-part is three-point Gauss quadrature (exact for a quintic in t)."""
+    omega = Coning(frame)
+    steps, t1 = 37, 2.3
+    h = t1 / steps
+
+    def field(t, y, args):
+        q, x = y
+        return jq.rate(q, omega(t, q), frame=frame), jnp.stack([t**5, jnp.cos(t)])
+
+    y0 = (coning_exact(0.0), jnp.zeros(2))
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(field),
+        jq.Magnus6(frame=frame),
+        0.0,
+        t1,
+        h,
+        y0,
+        saveat=diffrax.SaveAt(t1=True),
+        stepsize_controller=diffrax.ConstantStepSize(),
+    )
+    direct = jq.integrate(
+        coning_exact(0.0),
+        omega,
+        h,
+        steps,
+        frame=frame,
+        method="magnus6",
+        save="final",
+    )
+    np.testing.assert_allclose(sol.ys[0][-1], direct, atol=1e-13)
+    np.testing.assert_allclose(sol.ys[1][-1, 0], t1**6 / 6, rtol=1e-12)
+    np.testing.assert_allclose(sol.ys[1][-1, 1], np.sin(t1), atol=1e-11)
