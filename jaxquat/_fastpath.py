@@ -776,6 +776,10 @@ def _integrate_fast(
                 q0, samples, h, indices, series, frame, num_steps, renormalize_every
             )
         step = _sampled_step(h, series, frame)
+        if indices is None:
+            # Saving every step: scanned over as xs (reverse mode then stacks the cotangents; a
+            # lookup into the closed-over samples accumulated them in a carried buffer, slower).
+            return run(step, q0, samples[:num_steps], 1)
         read = _read(samples, indices)
         return run(lambda c, k: step(c, read(k)), q0, jnp.arange(num_steps), 1)
 

@@ -91,6 +91,8 @@ def test_validation_errors():
         jq.corrected_vector_field(jnp.zeros(3), 0.1, frame="inertial")
     with pytest.raises(ValueError, match="frame"):
         jq.Magnus4(frame="space")
+    with pytest.raises(ValueError, match="frame"):
+        jq.Magnus6(frame="space")
     # The fields check the state they are given ...
     term = diffrax.ODETerm(jq.kinematic_vector_field(jnp.ones(3)))
     with pytest.raises(ValueError, match="`q` must have shape"):
@@ -369,7 +371,7 @@ def _directional_fd(loss, p, v, eps=1e-5):
     return (8.0 * (f(eps) - f(-eps)) - (f(2 * eps) - f(-2 * eps))) / (12.0 * eps)
 
 
-@pytest.mark.parametrize("solver", [jq.RKMK45(), jq.LieEuler()])
+@pytest.mark.parametrize("solver", [jq.RKMK45(), jq.LieEuler(), jq.Magnus6(frame="world")])
 def test_gradients_match_finite_differences(solver):
     loss, grad, forward = _compiled(solver)
     for p in (PARAMS, jnp.zeros(6)):  # generic, and at rest (series branches; not NaN)
@@ -388,8 +390,9 @@ def test_backsolve_adjoint():
     exact = grad(PARAMS)
     backsolve = jax.grad(lambda p: _final_loss(p, jq.RKMK45(), diffrax.BacksolveAdjoint()))(PARAMS)
     assert np.max(np.abs(backsolve - exact)) <= 1e-6 * np.max(np.abs(exact))
-    with pytest.raises(ValueError, match=r"BacksolveAdjoint\(solver=diffrax\.Tsit5\(\)\)"):
-        jax.grad(lambda p: _final_loss(p, jq.Magnus4(), diffrax.BacksolveAdjoint()))(PARAMS)
+    for magnus in (jq.Magnus4(), jq.Magnus6()):
+        with pytest.raises(ValueError, match=r"BacksolveAdjoint\(solver=diffrax\.Tsit5\(\)\)"):
+            jax.grad(lambda p, m=magnus: _final_loss(p, m, diffrax.BacksolveAdjoint()))(PARAMS)
     alternative = jax.grad(
         lambda p: _final_loss(p, jq.Magnus4(), diffrax.BacksolveAdjoint(solver=diffrax.Tsit5()))
     )(PARAMS)
