@@ -763,9 +763,12 @@ def _integrate_fast(
         jnp.broadcast_to(jnp.arange(length, dtype=time_dtype)[:, None], (length, 3)),
     )
     indices = jax.vmap(lambda t: probe(t)[0])(times).astype(jnp.int32)
-    samples = jnp.broadcast_to(omega.omegas, (length,) + batch + (3,))
-    small = jnp.max(jnp.sum(samples * samples, axis=-1)) * (h * h) <= SERIES_MAX_THETA_SQ
-
+    # (L, *sample batch, 3) against the bodies' batch: align the batch axes from the right, never
+    # the time axis (a plain broadcast_to would pair L with the first body axis).
+    samples = omega.omegas
+    missing = len(batch) - (samples.ndim - 2)
+    samples = samples.reshape((length,) + (1,) * missing + samples.shape[1:])
+    samples = jnp.broadcast_to(samples, (length,) + batch + (3,))
     aligned = jnp.all(indices == jnp.arange(num_steps, dtype=indices.dtype))
 
     def sampled_run(series, indices, samples):
@@ -784,6 +787,9 @@ def _integrate_fast(
         return run(lambda c, k: step(c, read(k)), q0, jnp.arange(num_steps), 1)
 
     def on_grid(samples):
+        # The series needs every step small; on the grid the steps use the first num_steps samples.
+        used = samples[:num_steps]
+        small = jnp.max(jnp.sum(used * used, axis=-1)) * (h * h) <= SERIES_MAX_THETA_SQ
         return lax.cond(
             small,
             functools.partial(sampled_run, True, None),

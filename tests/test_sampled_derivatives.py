@@ -215,3 +215,27 @@ def test_float32_gradient_matches_float64(getkey):
     g32 = jax.grad(lambda w: loss(w, jnp.float32))(samples.astype(jnp.float32))
     assert g32.dtype == jnp.float32
     np.testing.assert_allclose(g32, g64, atol=2e-5 * float(jnp.max(jnp.abs(g64))))
+
+
+@pytest.mark.parametrize(
+    ("samples_shape", "q0_shape"),
+    [((3, 3), (3,)), ((5, 3), (3,)), ((3, 3), (5,)), ((4, 2, 3), (5, 1))],
+)
+@pytest.mark.parametrize("save", ["final", "all"])
+def test_samples_broadcast_over_bodies_from_the_right(samples_shape, q0_shape, save, getkey):
+    """Samples with fewer batch axes than q₀ broadcast like ω does (batch axes aligned from the right,
+    the time axis never paired with a body axis; a review found the fast path did pair them, silently
+    when the sample count equalled the number of bodies): values and gradients equal the general
+    path's (the same samples as a callable)."""
+    steps, dt = 3, 0.2
+    samples = 2.0 * jax.random.normal(getkey(), samples_shape)
+    q0 = random_unit(getkey(), q0_shape)
+
+    def run(w, general):
+        source = jq.sampled(w, dt)
+        omega = (lambda t, q: source(t)) if general else source
+        return jq.integrate(q0, omega, dt, steps, save=save)
+
+    np.testing.assert_allclose(run(samples, False), run(samples, True), atol=1e-14)
+    grads = [jax.grad(lambda w, g=g: jnp.sum(run(w, g) ** 3))(samples) for g in (False, True)]
+    np.testing.assert_allclose(grads[0], grads[1], atol=1e-13)
