@@ -103,6 +103,11 @@ def test_validation_errors():
         diffrax.diffeqsolve(term, jq.LieEuler(), 0.0, 1.0, 0.1, jnp.ones(3))
     with pytest.raises(ValueError, match="y0"):
         diffrax.diffeqsolve(term, jq.CF4(), 0.0, 1.0, 0.1, {"q": jq.identity()})
+    # The Magnus solvers take `q` or `(q, x)` only (a longer tuple is e.g. BacksolveAdjoint's).
+    for magnus in (jq.Magnus4(), jq.Magnus6()):
+        with pytest.raises(ValueError, match="tuple of length 3"):
+            y0 = (jq.identity(), jnp.zeros(2), jnp.zeros(1))
+            diffrax.diffeqsolve(term, magnus, 0.0, 1.0, 0.1, y0)
 
 
 # ----------------------------------------------------------------------------------------------------
