@@ -6,13 +6,16 @@ loop is restructured, as measured in PERFORMANCE.md (issue 8):
 - the step rotation of a constant ω is formed once, outside the loop;
 - the carry is structure-of-arrays (four `(*batch,)` arrays) and the loop is unrolled, so XLA fuses
   several steps into one pass over the bodies instead of streaming an `(N, 4)` array every step;
-- sampled ω on the integration grid is scanned over as `xs` (no per-step gather, and no scatter into
-  the full sample array in reverse mode);
+- sampled ω is read by index inside the loop (no gathered copy, on or off the integration grid), and
+  the final state's derivatives store nothing per step: reverse mode is an adjoint that steps back
+  with the inverse rotations, forward mode a tangent scan (`_sampled_final`);
+- the final state for a constant ω has a closed-form derivative (`_constant_final`);
 - when every step of the run is small (|ω|Δt ≤ 0.5, decided once for the batch by a `lax.cond`) the
   exponential is a series in θ² (NUMERICS.md §4) instead of float64 sin/cos, which XLA:CPU evaluates
   slowly;
 - renormalisation every `renormalize_every` steps happens between chunks, not as a per-step select;
-- `save="all"` writes each step into the time-major output inside the loop (no concatenation).
+- `save="all"`: a constant ω's trajectory is formed blockwise (`_constant_trajectory`); with sampled
+  ω the loop writes each step into the time-major output (no concatenation).
 
 `integrate` calls `integrate_fast` first; it returns `None` when the arguments are outside what it
 covers, and the general scan runs.
