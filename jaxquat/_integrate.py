@@ -128,6 +128,25 @@ def _call_field(field: Callable, t, q: Array, x: Any) -> tuple[Array, Any]:
     return omega.astype(q.dtype), g
 
 
+def magnus6_exponent(u1: Array, u2: Array, u3: Array, frame: str) -> Array:
+    """The sixth-order Magnus exponent Ω (a rotation vector) from uᵢ = hω(tₙ + cᵢh) at the three Gauss
+    points (`_STAGE_FRACTIONS["magnus6"]`): Blanes, Casas, Oteo & Ros (2009), Phys. Rep. 470, §5.2,
+    α₁ = u₂, α₂ = (√15/3)(u₃ − u₁), α₃ = (10/3)(u₃ − 2u₂ + u₁), C₁ = [α₁, α₂],
+    C₂ = −[α₁, 2α₃ + C₁]/60, Ω = α₁ + α₃/12 + [−20α₁ − α₃ + C₁, α₂ + C₂]/240. The bracket of rotation
+    vectors is a × b for the left action (world frame), b × a for the right (body frame). Written as
+    α₁ plus corrections, so a constant ω gives exactly hω."""
+
+    def bracket(a, b):
+        return cross(a, b) if frame == "world" else cross(b, a)
+
+    a1 = u2
+    a2 = (_SQRT15 / 3.0) * (u3 - u1)
+    a3 = (10.0 / 3.0) * ((u3 - u2) - (u2 - u1))
+    c1 = bracket(a1, a2)
+    c2 = bracket(a1, 2.0 * a3 + c1) * (-1.0 / 60.0)
+    return a1 + (a3 * (1.0 / 12.0) + bracket(-20.0 * a1 - a3 + c1, a2 + c2) * (1.0 / 240.0))
+
+
 def _stage_rates(
     field: Callable, t, h, q: Array, fractions: tuple[float, ...]
 ) -> tuple[Array, ...]:
@@ -176,20 +195,7 @@ def _lie_parts(method: str, field: Callable, t, q: Array, x: Any, h, frame: str)
                 "additional state `x`; use 'cf4'."
             )
         f1, f2, f3 = _stage_rates(field, t, h, q, _STAGE_FRACTIONS["magnus6"])
-
-        # Blanes, Casas, Oteo & Ros (2009), Phys. Rep. 470, §5.2, with three Gauss points:
-        # α₁ = hA₂, α₂ = (√15/3)h(A₃ − A₁), α₃ = (10/3)h(A₃ − 2A₂ + A₁), C₁ = [α₁, α₂],
-        # C₂ = −[α₁, 2α₃ + C₁]/60, Ω = α₁ + α₃/12 + [−20α₁ − α₃ + C₁, α₂ + C₂]/240.
-        # The bracket of rotation vectors is a × b for the left action (world), b × a for the right.
-        def bracket(a, b):
-            return cross(a, b) if frame == "world" else cross(b, a)
-
-        a1 = hq * f2
-        a2 = ((_SQRT15 / 3.0) * hq) * (f3 - f1)
-        a3 = ((10.0 / 3.0) * hq) * ((f3 - f2) - (f2 - f1))
-        c1 = bracket(a1, a2)
-        c2 = bracket(a1, 2.0 * a3 + c1) * (-1.0 / 60.0)
-        phi = a1 + (a3 * (1.0 / 12.0) + bracket(-20.0 * a1 - a3 + c1, a2 + c2) * (1.0 / 240.0))
+        phi = magnus6_exponent(hq * f1, hq * f2, hq * f3, frame)
         return (phi,), None
     if method == "cf4":
         # Celledoni, Marthinsen & Owren (2003), the 4-stage commutator-free method; on x: classical RK4.

@@ -36,6 +36,7 @@ from jax import lax
 from jaxtyping import Array, PyTree
 
 from ._algebra import conjugate, from_vector, log, multiply
+from ._integrate import _STAGE_FRACTIONS, magnus6_exponent
 from ._kinematics import corrected_rate, rate
 from ._numerics import (
     as_float_array,
@@ -586,7 +587,49 @@ class CF4(diffrax.AbstractSolver):
         return y1, None, _dense_info(y0, treedef, qc, xcs), f_end, diffrax.RESULTS.successful
 
 
-class Magnus4(diffrax.AbstractSolver):
+class _Magnus(diffrax.AbstractSolver):
+    """What `Magnus4` and `Magnus6` share: the frame, the state checks, and the stage rates
+    uᵢ = 2 vec(h q̇ᵢ ⊗ q_n*) (world) or 2 vec(q_n* ⊗ h q̇ᵢ) (body) at the Gauss points, with q frozen."""
+
+    frame: eqx.AbstractVar[str]
+
+    term_structure: ClassVar = diffrax.AbstractTerm
+    interpolation_cls: ClassVar[Callable[..., LieCubicInterpolation]] = LieCubicInterpolation
+
+    def __check_init__(self):
+        check_frame(self.frame)
+
+    def init(self, terms, t0, t1, y0, args):
+        self._split(y0)
+        return None
+
+    def func(self, terms, t0, y0, args):
+        return terms.vf(t0, y0, args)
+
+    def _split(self, y0):
+        name = type(self).__name__
+        if isinstance(y0, tuple) and (len(y0) != 2 or isinstance(y0[0], tuple)):
+            raise ValueError(
+                f"`y0` of {name} must be `q` or a tuple `(q, x)`; got a tuple of length "
+                f"{len(y0)}. {name} assumes a vector field independent of the state. {_BACKSOLVE_HINT}"
+            )
+        return _state_split(y0, name)
+
+    def _stages(self, terms, t0, t1, y0, args, fractions):
+        q0, x0, treedef = self._split(y0)
+        control = terms.contr(t0, t1)
+        h = t1 - t0
+        recover = _increment if self.frame == "world" else _body_increment
+        us, ks = [], []
+        for c in fractions:
+            f = terms.vf(t0 + c * h, y0, args)
+            dq, dxs = _apply_control(terms, f, control, treedef)
+            us.append(recover(dq, q0))
+            ks.append(dxs)
+        return q0, x0, treedef, us, ks
+
+
+class Magnus4(_Magnus):
     r"""The fourth-order Magnus method with two Gauss points and one commutator.
 
     For an angular velocity that depends on time only: with $c_{1,2} = \tfrac12 ∓ \tfrac{\sqrt3}{6}$ and
@@ -615,42 +658,12 @@ class Magnus4(diffrax.AbstractSolver):
 
     frame: str = eqx.field(static=True, default="world")
 
-    term_structure: ClassVar = diffrax.AbstractTerm
-    interpolation_cls: ClassVar[Callable[..., LieCubicInterpolation]] = LieCubicInterpolation
-
-    def __check_init__(self):
-        check_frame(self.frame)
-
     def order(self, terms):
         return 4
 
-    def init(self, terms, t0, t1, y0, args):
-        self._split(y0)
-        return None
-
-    def func(self, terms, t0, y0, args):
-        return terms.vf(t0, y0, args)
-
-    def _split(self, y0):
-        if isinstance(y0, tuple) and (len(y0) != 2 or isinstance(y0[0], tuple)):
-            raise ValueError(
-                "`y0` of Magnus4 must be `q` or a tuple `(q, x)`; got a tuple of length "
-                f"{len(y0)}. Magnus4 assumes a vector field independent of the state. {_BACKSOLVE_HINT}"
-            )
-        return _state_split(y0, "Magnus4")
-
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del solver_state, made_jump
-        q0, x0, treedef = self._split(y0)
-        control = terms.contr(t0, t1)
-        h = t1 - t0
-        recover = _increment if self.frame == "world" else _body_increment
-        us, ks = [], []
-        for c in (0.5 - _SQRT3 / 6.0, 0.5 + _SQRT3 / 6.0):
-            f = terms.vf(t0 + c * h, y0, args)
-            dq, dxs = _apply_control(terms, f, control, treedef)
-            us.append(recover(dq, q0))
-            ks.append(dxs)
+        q0, x0, treedef, us, ks = self._stages(terms, t0, t1, y0, args, _STAGE_FRACTIONS["magnus4"])
         u1, u2 = us
         mean = 0.5 * (u1 + u2)
         slope = _SQRT3 * (u2 - u1)
@@ -679,7 +692,7 @@ class Magnus4(diffrax.AbstractSolver):
         return y1, None, dense_info, None, diffrax.RESULTS.successful
 
 
-class Magnus6(diffrax.AbstractSolver):
+class Magnus6(_Magnus):
     r"""The sixth-order Magnus method with three Gauss points and three commutators.
 
     For an angular velocity that depends on time only: with $c_{1,2,3} = \tfrac12 − \tfrac{\sqrt{15}}{10},
@@ -709,54 +722,15 @@ class Magnus6(diffrax.AbstractSolver):
 
     frame: str = eqx.field(static=True, default="world")
 
-    term_structure: ClassVar = diffrax.AbstractTerm
-    interpolation_cls: ClassVar[Callable[..., LieCubicInterpolation]] = LieCubicInterpolation
-
-    def __check_init__(self):
-        check_frame(self.frame)
-
     def order(self, terms):
         return 6
 
-    def init(self, terms, t0, t1, y0, args):
-        self._split(y0)
-        return None
-
-    def func(self, terms, t0, y0, args):
-        return terms.vf(t0, y0, args)
-
-    def _split(self, y0):
-        if isinstance(y0, tuple) and (len(y0) != 2 or isinstance(y0[0], tuple)):
-            raise ValueError(
-                "`y0` of Magnus6 must be `q` or a tuple `(q, x)`; got a tuple of length "
-                f"{len(y0)}. Magnus6 assumes a vector field independent of the state. {_BACKSOLVE_HINT}"
-            )
-        return _state_split(y0, "Magnus6")
-
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del solver_state, made_jump
-        q0, x0, treedef = self._split(y0)
-        control = terms.contr(t0, t1)
-        h = t1 - t0
-        recover = _increment if self.frame == "world" else _body_increment
+        q0, x0, treedef, us, ks = self._stages(terms, t0, t1, y0, args, _STAGE_FRACTIONS["magnus6"])
         offset = _SQRT15 / 10.0
-        us, ks = [], []
-        for c in (0.5 - offset, 0.5, 0.5 + offset):
-            f = terms.vf(t0 + c * h, y0, args)
-            dq, dxs = _apply_control(terms, f, control, treedef)
-            us.append(recover(dq, q0))
-            ks.append(dxs)
-
-        def bracket(a, b):
-            return cross(a, b) if self.frame == "world" else cross(b, a)
-
         u1, u2, u3 = us
-        a1 = u2
-        a2 = (_SQRT15 / 3.0) * (u3 - u1)
-        a3 = (10.0 / 3.0) * ((u3 - u2) - (u2 - u1))
-        c1 = bracket(a1, a2)
-        c2 = bracket(a1, 2.0 * a3 + c1) * (-1.0 / 60.0)
-        phi = a1 + (a3 * (1.0 / 12.0) + bracket(-20.0 * a1 - a3 + c1, a2 + c2) * (1.0 / 240.0))
+        phi = magnus6_exponent(u1, u2, u3, self.frame)
         if self.frame == "world":
             q1 = _exp_left(phi, q0)
         else:
