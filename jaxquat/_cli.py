@@ -104,7 +104,7 @@ def _read_text(path: str, what: str) -> str:
     if os.path.isdir(path):
         raise CommandLineError(f"{path}: is a directory, expected a {what}")
     try:
-        with open(path, encoding="utf-8") as f:
+        with open(path, encoding="utf-8-sig") as f:  # a leading byte-order mark (Excel) is dropped
             return f.read()
     except UnicodeDecodeError:
         raise CommandLineError(f"{path}: not a UTF-8 text file ({what})") from None
@@ -167,7 +167,8 @@ def read_observations_csv(path: str):
         rows.append(values)
         line_numbers.append(number)
     if not rows:
-        raise CommandLineError(f"{path}: no data rows (empty file)")
+        what = "empty file" if not text.strip() else "only a header, blank lines or comments"
+        raise CommandLineError(f"{path}: no data rows ({what})")
     if len(rows) < 3:
         raise CommandLineError(f"{path}: need at least 3 observations to fit ω, got {len(rows)}")
     data = np.asarray(rows, dtype=np.float64)

@@ -72,8 +72,9 @@ def from_axis_angle(axis: ArrayLike, angle: ArrayLike) -> Array:
     angle = as_float_array(angle, "angle")
     axis_norm = safe_norm(axis, keepdims=True)
     unit = axis / jnp.where(axis_norm > 0, axis_norm, jnp.ones_like(axis_norm))
-    unit, angle = broadcast_batch((unit, 1), (angle, 0))
-    half = 0.5 * angle
+    unit, angle, axis_norm = broadcast_batch((unit, 1), (angle, 0), (axis_norm[..., 0], 0))
+    # No axis, no rotation: the angle about a zero axis is dropped (else (cos θ/2, 0, 0, 0), not unit).
+    half = jnp.where(axis_norm > 0, 0.5 * angle, jnp.zeros_like(angle))
     return jnp.concatenate([jnp.cos(half)[..., None], jnp.sin(half)[..., None] * unit], axis=-1)
 
 

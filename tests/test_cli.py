@@ -67,6 +67,21 @@ def test_fit_recovers_omega_from_a_generated_csv(tmp_path, capsys):
     np.testing.assert_allclose([float(v) for v in printed.split(",")], OMEGA, atol=1e-8)
 
 
+def test_fit_reads_a_csv_with_a_byte_order_mark_and_crlf_line_ends(tmp_path, capsys):
+    # Spreadsheet exports: UTF-8 with a BOM before the header, Windows line ends. Same ω as plain.
+    times, qs = _observations()
+    plain = _write_csv(tmp_path / "plain.csv", times, qs)
+    exported = tmp_path / "exported.csv"
+    exported.write_bytes(b"\xef\xbb\xbf" + plain.read_text().replace("\n", "\r\n").encode())
+    reports = []
+    for path in (plain, exported):
+        status, out, err = _run(["fit", path, "--json"], capsys)
+        assert status == 0, err
+        reports.append(json.loads(out))
+    np.testing.assert_allclose(reports[1]["omega"], reports[0]["omega"], rtol=0, atol=0)
+    np.testing.assert_allclose(reports[1]["omega"], OMEGA, atol=1e-8)
+
+
 def _csv_cases(tmp_path):
     times, qs = _observations(count=6)
     good = [",".join(repr(float(v)) for v in (t, *q)) for t, q in zip(times, qs, strict=True)]

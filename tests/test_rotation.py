@@ -171,6 +171,17 @@ def test_rotvec_axis_angle_and_xyzw_match_scipy(rotations):
     np.testing.assert_array_equal(jq.from_xyzw(jq.to_xyzw(rotations)), rotations)
 
 
+def test_from_axis_angle_with_a_zero_axis_is_the_identity():
+    # A rotation needs an axis: about the zero vector any angle gives the identity (unit), as
+    # documented, batched alongside proper axes, with a zero gradient w.r.t. the angle there.
+    axes = jnp.array([[0.0, 0.0, 0.0], [0.0, 0.0, 2.0]])
+    q = np.asarray(jq.from_axis_angle(axes, jnp.array([1.0, np.pi])))
+    np.testing.assert_array_equal(q[0], [1.0, 0.0, 0.0, 0.0])
+    np.testing.assert_allclose(q[1], [0.0, 0.0, 0.0, 1.0], atol=1e-15)
+    g = jax.grad(lambda a: jq.from_axis_angle(jnp.zeros(3), a)[0])(1.0)
+    assert g == 0.0
+
+
 def test_rotate_matches_scipy_apply(rotations):
     rng = np.random.default_rng(1)
     v, c = rng.normal(size=(len(rotations), 3)), rng.normal(size=(len(rotations), 3))
