@@ -409,28 +409,59 @@ def load_ensemble(path: str | os.PathLike) -> dict[str, Any]:
     - `"metadata"`: the run's parameters (method, frame, dt, …).
     """
     path = os.fspath(path)
+    if not os.path.exists(path):
+        raise ValueError(f"`path` {path!r} does not exist.")
+    if not os.path.isdir(path):
+        raise ValueError(f"`path` {path!r} is not a directory: not a jaxquat ensemble.")
     index_path = os.path.join(path, "index.json")
+    if not os.path.isfile(index_path):
+        raise ValueError(f"`path` {path!r} has no index.json: not a jaxquat ensemble.")
     try:
-        with open(index_path) as f:
-            index = json.load(f)
-    except FileNotFoundError as e:
-        raise ValueError(f"`path` {path!r} has no index.json: not a jaxquat ensemble.") from e
-    if index.get("format") != _FORMAT:
-        raise ValueError(f"`path` {path!r}: index.json is not a jaxquat ensemble index.")
-    batch = tuple(index["batch_shape"])
+        return _read_ensemble(path, index_path)
+    except _MalformedEnsemble as e:
+        raise ValueError(f"`path` {path!r}: {e}") from None
+    except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError) as e:
+        # A truncated or edited index or data file: one clear error, never a partial result.
+        raise ValueError(
+            f"`path` {path!r}: malformed jaxquat ensemble ({type(e).__name__}: {e})."
+        ) from e
+
+
+class _MalformedEnsemble(Exception):
+    pass
+
+
+def _read_ensemble(path: str, index_path: str) -> dict[str, Any]:
+    with open(index_path, encoding="utf-8") as f:
+        index = json.load(f)
+    if not isinstance(index, dict) or index.get("format") != _FORMAT:
+        raise _MalformedEnsemble(
+            "index.json is not a jaxquat ensemble index (not a jaxquat ensemble)."
+        )
+    batch = tuple(int(n) for n in index["batch_shape"])
     dtype = np.dtype(index["dtype"])
     out: dict[str, Any] = {}
     widths = {"states": 4, "omegas": 3} if index.get("dynamic") else {"states": 4}
     for key, width in widths.items():
-        parts = [np.load(os.path.join(path, r["files"][key])) for r in index["records"]]
+        parts = []
+        for number, record in enumerate(index["records"]):
+            name = record["files"][key]
+            part = np.load(os.path.join(path, name), allow_pickle=False)
+            expected = (len(record["steps"]),) + batch + (width,)
+            if part.shape != expected or part.dtype != dtype:
+                raise _MalformedEnsemble(
+                    f"{name} (record {number}) holds {part.dtype}{list(part.shape)}, the index says "
+                    f"{dtype}{list(expected)}."
+                )
+            parts.append(part)
         out[key] = (
             np.concatenate(parts, axis=0) if parts else np.zeros((0,) + batch + (width,), dtype)
         )
-    steps = [s for r in index["records"] for s in r["steps"]]
+    steps = [int(s) for r in index["records"] for s in r["steps"]]
     out["steps"] = np.asarray(steps, dtype=np.int64)
-    out["times"] = index["t0"] + index["dt"] * out["steps"].astype(np.float64)
+    out["times"] = float(index["t0"]) + float(index["dt"]) * out["steps"].astype(np.float64)
     for key, name in index.get("final", {}).items():
-        out[key] = np.load(os.path.join(path, name))
+        out[key] = np.load(os.path.join(path, name), allow_pickle=False)
     out["complete"] = bool(index["complete"])
     out["steps_done"] = int(index["steps_done"])
     out["metadata"] = {k: v for k, v in index.items() if k not in ("records", "final")}

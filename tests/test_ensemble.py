@@ -231,6 +231,48 @@ def test_bad_paths(tmp_path):
     assert (tmp_path / "other" / "notes.txt").read_text() == "keep me"
     with pytest.raises(ValueError, match="index.json"):
         load_ensemble(tmp_path / "other")
+    with pytest.raises(ValueError, match="does not exist"):
+        load_ensemble(tmp_path / "missing")
+    with pytest.raises(ValueError, match="not a directory"):
+        load_ensemble(tmp_path / "file")
+
+
+def test_load_ensemble_rejects_malformed_files(tmp_path):
+    # Every way a written ensemble can be damaged gives one ValueError naming the path, never a
+    # JSONDecodeError, KeyError or a silently reshaped result.
+    import json
+
+    run = tmp_path / "run"
+    simulate_ensemble(
+        np.tile([1.0, 0, 0, 0], (5, 1)),
+        np.ones((5, 3)),
+        0.1,
+        6,
+        save_every=2,
+        chunk_size=2,
+        path=run,
+    )
+    assert load_ensemble(run)["states"].shape == (4, 5, 4)
+    index = json.loads((run / "index.json").read_text())
+    data = run / index["records"][1]["files"]["states"]
+    good = data.read_bytes()
+    np.save(data, np.zeros((3, 5, 4), np.float32))  # a data file of the wrong length
+    with pytest.raises(ValueError, match=r"record 1\) holds float32\[3, 5, 4\]"):
+        load_ensemble(run)
+    data.write_bytes(good[:40])  # truncated
+    with pytest.raises(ValueError, match="malformed jaxquat ensemble"):
+        load_ensemble(run)
+    data.write_bytes(good)
+    del index["records"][0]["steps"]  # an edited index
+    (run / "index.json").write_text(json.dumps(index))
+    with pytest.raises(ValueError, match="malformed jaxquat ensemble.*KeyError"):
+        load_ensemble(run)
+    (run / "index.json").write_text('{"format": ')  # truncated JSON
+    with pytest.raises(ValueError, match="JSONDecodeError"):
+        load_ensemble(run)
+    (run / "index.json").write_text("[1, 2]")
+    with pytest.raises(ValueError, match="not a jaxquat ensemble index"):
+        load_ensemble(run)
 
 
 _SHARDED = textwrap.dedent(
