@@ -753,6 +753,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as e:  # the library's argument checks
         print(f"{_PROG}: error: {_one_line(e)}", file=sys.stderr)
         return 2
+    except OSError as e:  # the machine's side: an unwritable output path, a full disk, ...
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"{_PROG}: error: {where}{e.strerror or _one_line(e)}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"{_PROG}: interrupted", file=sys.stderr)
         return 130

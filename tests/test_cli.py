@@ -292,3 +292,13 @@ def test_interrupted_simulate_says_where_the_chunks_are(monkeypatch, tmp_path, c
         ["simulate", "--bodies", "3", "--steps", "2", "--output", tmp_path / "run"], capsys
     )
     assert status == 130 and err.count("\n") == 1 and "completed chunks" in err and "run/" in err
+
+
+def test_simulate_into_an_unwritable_output_is_one_line_error(tmp_path, capsys):
+    # An output directory that cannot be created (its parent is a file): the OS's reason, exit 2.
+    (tmp_path / "file").write_text("x")
+    target = tmp_path / "file" / "run"
+    argv = ["simulate", "--bodies", "4", "--steps", "2", "--save-every", "1", "--output", target]
+    status, out, err = _run([*argv, "--no-progress"], capsys)
+    _assert_one_line_error(status, err, str(target))
+    assert "internal error" not in err
