@@ -11,9 +11,10 @@ from jaxtyping import Array, ArrayLike
 from ._numerics import (
     atan2_over,
     broadcast_batch,
+    check_float_dtype,
+    check_shape,
     check_trailing,
     cos_half,
-    default_float_dtype,
     safe_norm,
     sinc_half,
     sum_squares,
@@ -25,16 +26,17 @@ def identity(shape: int | tuple[int, ...] = (), dtype=None) -> Array:
 
     **Arguments:**
 
-    - `shape`: batch shape of the result.
-    - `dtype`: float dtype; defaults to JAX's default float (float64 under `jax_enable_x64`).
+    - `shape`: batch shape of the result: a non-negative int or a tuple of them.
+    - `dtype`: floating dtype; defaults to JAX's default float (float64 under `jax_enable_x64`).
 
     **Returns:** an array of shape `(*shape, 4)`.
+
+    **Raises:** `ValueError` for a negative / non-integer `shape` or a non-floating `dtype`.
     """
-    if isinstance(shape, int):
-        shape = (shape,)
-    dtype = default_float_dtype() if dtype is None else jnp.dtype(dtype)
+    shape = check_shape(shape, "shape")
+    dtype = check_float_dtype(dtype, "dtype")
     one = jnp.zeros((4,), dtype).at[0].set(1)
-    return jnp.broadcast_to(one, tuple(shape) + (4,))
+    return jnp.broadcast_to(one, shape + (4,))
 
 
 def _split(q: Array) -> tuple[Array, Array, Array, Array]:
@@ -78,7 +80,7 @@ def conjugate(q: ArrayLike) -> Array:
 
 
 def norm(q: ArrayLike) -> Array:
-    """The Euclidean norm |q| = √(w² + x² + y² + z²), shape `(...)`. Gradient 0 at q = 0."""
+    """The Euclidean norm |q| = √(w² + x² + y² + z²), shape `(...)`. Gradient 0 at q = 0; NaN in, NaN out."""
     q = check_trailing(q, 4, "q")
     return safe_norm(q)
 

@@ -6,6 +6,8 @@ that returns a *rotation* (rather than a point on the sphere) says how it treats
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -15,9 +17,10 @@ from ._algebra import conjugate, multiply
 from ._numerics import (
     as_float_array,
     broadcast_batch,
+    check_float_dtype,
+    check_shape,
     check_trailing,
     cross,
-    default_float_dtype,
     safe_norm,
     sum_squares,
     top_eigenvector,
@@ -44,7 +47,7 @@ def angle_between(p: ArrayLike, q: ArrayLike) -> Array:
     """
     p = check_trailing(p, 4, "p")
     q = check_trailing(q, 4, "q")
-    p, q = broadcast_batch((p, 1), (q, 1))
+    p, q = broadcast_batch((p, 1, "p"), (q, 1, "q"))
     w = jnp.sum(p * q, axis=-1)  # w(p* q) = ⟨p, q⟩
     # vec(p* q) = p_w q_v − q_w p_v − p_v × q_v, written in the difference d = ±q − p (sign of ⟨p, q⟩):
     # p_w d_v − d_w p_v − p_v × d_v. Exactly 0 when q = ±p (the product form is not, once the
@@ -76,7 +79,7 @@ def slerp(p: ArrayLike, q: ArrayLike, t: ArrayLike) -> Array:
     p = check_trailing(p, 4, "p")
     q = check_trailing(q, 4, "q")
     t = as_float_array(t, "t")
-    p, q, t = broadcast_batch((p, 1), (q, 1), (t, 0))
+    p, q, t = broadcast_batch((p, 1, "p"), (q, 1, "q"), (t, 0, "t"))
     relative = to_rotvec(multiply(conjugate(p), q))
     return multiply(p, from_rotvec(t[..., None] * relative))
 
@@ -103,6 +106,7 @@ def squad(p: ArrayLike, a: ArrayLike, b: ArrayLike, q: ArrayLike, t: ArrayLike) 
     b = check_trailing(b, 4, "b")
     q = check_trailing(q, 4, "q")
     t = as_float_array(t, "t")
+    p, a, b, q, t = broadcast_batch((p, 1, "p"), (a, 1, "a"), (b, 1, "b"), (q, 1, "q"), (t, 0, "t"))
     return slerp(slerp(p, q, t), slerp(a, b, t), 2.0 * t * (1.0 - t))
 
 
@@ -122,10 +126,12 @@ def squad_control_points(previous: ArrayLike, current: ArrayLike, following: Arr
     previous = check_trailing(previous, 4, "previous")
     current = check_trailing(current, 4, "current")
     following = check_trailing(following, 4, "following")
+    previous, current, following = broadcast_batch(
+        (previous, 1, "previous"), (current, 1, "current"), (following, 1, "following")
+    )
     inverse = conjugate(current)
     forward = to_rotvec(multiply(inverse, following))
     backward = to_rotvec(multiply(inverse, previous))
-    forward, backward = broadcast_batch((forward, 1), (backward, 1))
     return multiply(current, from_rotvec(-0.25 * (forward + backward)))
 
 
@@ -154,17 +160,16 @@ def random(key: Array, shape: int | tuple[int, ...] = (), dtype=None) -> Array:
     **Arguments:**
 
     - `key`: a `jax.random` key.
-    - `shape`: batch shape (int or tuple).
-    - `dtype`: float dtype; defaults to JAX's default float.
+    - `shape`: batch shape: a non-negative int or a tuple of them.
+    - `dtype`: floating dtype; defaults to JAX's default float.
 
     **Returns:** shape `(*shape, 4)`, not sign-canonicalised (uniform on the whole sphere).
+
+    **Raises:** `ValueError` for a negative / non-integer `shape` or a non-floating `dtype`.
     """
-    if isinstance(shape, int):
-        shape = (shape,)
-    dtype = default_float_dtype() if dtype is None else jnp.dtype(dtype)
-    if not jnp.issubdtype(dtype, jnp.floating):
-        raise ValueError(f"`dtype` must be a float dtype; got {dtype}.")
-    x = jax.random.normal(key, tuple(shape) + (4,), dtype=dtype)
+    shape = check_shape(shape, "shape")
+    dtype = check_float_dtype(dtype, "dtype")
+    x = jax.random.normal(key, shape + (4,), dtype=dtype)
     return x / jnp.sqrt(sum_squares(x, keepdims=True))
 
 
@@ -182,7 +187,8 @@ def mean(
     - `q`: quaternions, shape `(..., 4)`.
     - `weights`: optional non-negative weights, broadcastable to `q.shape[:-1]` (not checked under
       `jit`: negative weights give a meaningless result).
-    - `axis`: the batch axes to average over: `None` (all, SciPy's default), an int or a tuple.
+    - `axis`: the batch axes to average over: `None` (all, SciPy's default), an int or a tuple. They
+      must hold at least one quaternion (else `ValueError`).
 
     **Returns:** the mean rotation, w ≥ 0 (it is a sign-invariant output), shape of the batch axes
     that were not averaged + `(4,)`.
@@ -203,6 +209,12 @@ def mean(
             f"`axis` {axis} is out of range for the batch shape {tuple(q.shape[:-1])} of `q`."
         )
     axis = tuple(sorted({n % batch_ndim for n in axis}))
+    count = math.prod(q.shape[n] for n in axis)
+    if count == 0:
+        raise ValueError(
+            "at least one quaternion is needed to take a mean: the averaged axes "
+            f"{axis} of `q` (shape {tuple(q.shape)}) are empty."
+        )
     outer = q[..., :, None] * q[..., None, :]
     if weights is not None:
         weights = as_float_array(weights, "weights")

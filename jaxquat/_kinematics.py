@@ -42,6 +42,7 @@ def rate(q: ArrayLike, omega: ArrayLike, *, frame: str = "world") -> Array:
     frame = check_frame(frame)
     q = check_trailing(q, 4, "q")
     omega = check_trailing(omega, 3, "omega")
+    q, omega = broadcast_batch((q, 1, "q"), (omega, 1, "omega"))
     return _apply(q, 0.5 * omega, frame)
 
 

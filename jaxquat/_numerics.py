@@ -10,6 +10,7 @@ Also here: input validation helpers that raise a `ValueError` at trace time nami
 
 from __future__ import annotations
 
+import operator
 from collections.abc import Callable, Sequence
 
 import jax
@@ -40,17 +41,61 @@ def series_threshold(dtype) -> float:
 def as_float_array(x: ArrayLike, name: str = "x") -> Array:
     """`jnp.asarray(x)`, promoting integer / bool input to the default float dtype.
 
-    Floating input keeps its dtype (float32 in → float32 out).
+    Floating input keeps its dtype (float32 in → float32 out). `None`, strings, ragged nested lists
+    and other non-numeric input raise a `ValueError` naming the argument.
     """
+    if x is None:
+        raise ValueError(f"`{name}` must be an array of numbers; got None.")
     try:
         x = jnp.asarray(x)
-    except TypeError as e:
-        raise ValueError(f"`{name}` must be an array of numbers; got {type(x).__name__}.") from e
+    except (TypeError, ValueError) as e:
+        raise ValueError(
+            f"`{name}` must be an array of numbers; got {type(x).__name__} that is not one "
+            f"(a number, a rectangular nested list or an array is expected): {e}"
+        ) from e
     if not jnp.issubdtype(x.dtype, jnp.floating):
         if jnp.issubdtype(x.dtype, jnp.complexfloating):
             raise ValueError(f"`{name}` must be real; got dtype {x.dtype}.")
         x = x.astype(default_float_dtype())
     return x
+
+
+def check_shape(shape, name: str = "shape") -> tuple[int, ...]:
+    """Validate a batch-shape argument: a non-negative int or a tuple/list of them → a tuple of ints.
+
+    Integers of any kind (Python, NumPy) are accepted; bools, floats, `None` and negative sizes raise a
+    `ValueError` naming the argument.
+    """
+
+    def size(n) -> int:
+        if isinstance(n, (bool, np.bool_)):
+            raise TypeError
+        n = operator.index(n)
+        if n < 0:
+            raise TypeError
+        return n
+
+    try:
+        if isinstance(shape, (tuple, list)):
+            return tuple(size(n) for n in shape)
+        return (size(shape),)
+    except TypeError:
+        raise ValueError(
+            f"`{name}` must be a non-negative int or a tuple of non-negative ints; got {shape!r}."
+        ) from None
+
+
+def check_float_dtype(dtype, name: str = "dtype") -> jnp.dtype:
+    """Validate a `dtype=` argument: `None` (JAX's default float) or a floating dtype."""
+    if dtype is None:
+        return default_float_dtype()
+    try:
+        resolved = jnp.dtype(dtype)
+    except (TypeError, ValueError):
+        resolved = None
+    if resolved is None or not jnp.issubdtype(resolved, jnp.floating):
+        raise ValueError(f"`{name}` must be a float dtype (e.g. jnp.float32); got {dtype!r}.")
+    return resolved
 
 
 def check_trailing(x: ArrayLike, size: int, name: str) -> Array:
@@ -117,11 +162,13 @@ def sum_squares(x: Array, axis: int = -1, keepdims: bool = False) -> Array:
 def safe_norm(x: Array, axis: int = -1, keepdims: bool = False) -> Array:
     """Euclidean norm whose gradient at `x = 0` is 0 instead of NaN.
 
-    Value: |x| everywhere. Gradient: x/|x| for x ≠ 0 and exactly 0 at x = 0 (the norm is not
-    differentiable there; 0 is the minimum-norm subgradient).
+    Value: |x| everywhere (NaN if `x` contains NaN). Gradient: x/|x| for x ≠ 0 and exactly 0 at x = 0
+    (the norm is not differentiable there; 0 is the minimum-norm subgradient).
     """
     sq = sum_squares(x, axis=axis, keepdims=keepdims)
-    nonzero = sq > 0
+    # `~(sq <= 0)`, not `sq > 0`: a NaN must take the computing branch (and come out NaN), not be
+    # reported as a zero norm.
+    nonzero = ~(sq <= 0)
     safe_sq = jnp.where(nonzero, sq, jnp.ones_like(sq))
     return jnp.where(nonzero, jnp.sqrt(safe_sq), jnp.zeros_like(sq))
 
@@ -251,10 +298,10 @@ def is_tracer(x) -> bool:
 def safe_atan2(y: Array, x: Array) -> Array:
     """atan2(y, x) whose gradient at (0, 0) is 0 instead of NaN.
 
-    Value: `jnp.arctan2(y, x)` everywhere (0 at the origin). Gradient: (x, −y)/(x² + y²) away from the
-    origin; at the origin (where atan2 is discontinuous) exactly 0.
+    Value: `jnp.arctan2(y, x)` everywhere (0 at the origin, NaN if x or y is NaN). Gradient:
+    (x, −y)/(x² + y²) away from the origin; at the origin (where atan2 is discontinuous) exactly 0.
     """
-    nonzero = (x * x + y * y) > 0
+    nonzero = ~((x * x + y * y) <= 0)
     safe_x = jnp.where(nonzero, x, jnp.ones_like(x))
     safe_y = jnp.where(nonzero, y, jnp.zeros_like(y))
     return jnp.where(nonzero, jnp.arctan2(safe_y, safe_x), jnp.zeros_like(x))

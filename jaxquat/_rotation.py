@@ -63,25 +63,30 @@ def rotate(v: ArrayLike, q: ArrayLike, center: ArrayLike | None = None) -> Array
 def from_axis_angle(axis: ArrayLike, angle: ArrayLike) -> Array:
     """The unit quaternion (cos(θ/2), sin(θ/2) n̂) of a rotation by `angle` θ about `axis` (right-hand).
 
-    `axis` need not be unit (it is normalised; a zero axis gives the identity). `angle` has shape
-    `(...)` and broadcasts with the batch shape of `axis`.
+    `axis` need not be unit (it is normalised; a zero axis gives the identity for any finite angle).
+    `angle` has shape `(...)` and broadcasts with the batch shape of `axis`. NaN in either gives NaN.
 
     Example: `from_axis_angle([0, 0, 2], jnp.pi / 2)` is `[0.70711, 0, 0, 0.70711]`.
     """
     axis = check_trailing(axis, 3, "axis")
     angle = as_float_array(angle, "angle")
+    axis, angle = broadcast_batch((axis, 1, "axis"), (angle, 0, "angle"))
     axis_norm = safe_norm(axis, keepdims=True)
-    unit = axis / jnp.where(axis_norm > 0, axis_norm, jnp.ones_like(axis_norm))
-    unit, angle, axis_norm = broadcast_batch((unit, 1), (angle, 0), (axis_norm[..., 0], 0))
+    # `~(norm <= 0)`, not `norm > 0`: a NaN axis takes the computing branch and stays NaN.
+    has_axis = ~(axis_norm <= 0)
+    unit = axis / jnp.where(has_axis, axis_norm, jnp.ones_like(axis_norm))
     # No axis, no rotation: the angle about a zero axis is dropped (else (cos θ/2, 0, 0, 0), not unit).
-    half = jnp.where(axis_norm > 0, 0.5 * angle, jnp.zeros_like(angle))
+    # `0 * angle` rather than a literal 0 keeps a NaN angle NaN (its derivative is still 0).
+    half = jnp.where(has_axis[..., 0], 0.5 * angle, 0.0 * angle)
+    half = jnp.where(jnp.isnan(axis_norm[..., 0]), jnp.nan, half)  # a NaN axis: NaN, w included
     return jnp.concatenate([jnp.cos(half)[..., None], jnp.sin(half)[..., None] * unit], axis=-1)
 
 
 def to_axis_angle(q: ArrayLike) -> tuple[Array, Array]:
     """The axis (unit, shape `(..., 3)`) and angle in [0, π] (shape `(...)`) of the rotation q.
 
-    `q` need not be unit. At the identity the axis is undefined and `(1, 0, 0)` is returned.
+    `q` need not be unit. At the identity the axis is undefined and `(1, 0, 0)` is returned. A NaN
+    anywhere in `q` gives NaN axis and angle.
     """
     q = check_trailing(q, 4, "q")
     q = jnp.where(q[..., :1] < 0, -q, q)
@@ -89,8 +94,12 @@ def to_axis_angle(q: ArrayLike) -> tuple[Array, Array]:
     s = safe_norm(v)
     angle = 2.0 * jnp.arctan2(s, q[..., 0])
     default = jnp.zeros_like(v).at[..., 0].set(1.0)
-    safe_s = jnp.where(s > 0, s, jnp.ones_like(s))[..., None]
-    axis = jnp.where((s > 0)[..., None], v / safe_s, default)
+    # `~(s <= 0)`, not `s > 0`: a NaN vector part takes the computing branch (NaN), not the default.
+    has_axis = ~(s <= 0)
+    safe_s = jnp.where(has_axis, s, jnp.ones_like(s))[..., None]
+    axis = jnp.where(has_axis[..., None], v / safe_s, default)
+    # A NaN w leaves v/|v| finite but its sign (the w ≥ 0 choice) undecided: report NaN, not a guess.
+    axis = jnp.where(jnp.isnan(angle)[..., None], jnp.nan, axis)
     return axis, angle
 
 
@@ -278,6 +287,7 @@ def to_euler(q: ArrayLike, seq: str) -> Array:
 
     **Gradient:** exact away from gimbal lock and from the ±π wrap of the first and third angles
     (where Euler angles themselves are not differentiable); finite (NaN-free) at gimbal lock.
+    A NaN anywhere in `q` gives NaN angles.
     """
     extrinsic, axes = _parse_seq(seq)
     q = check_trailing(q, 4, "q")
@@ -344,7 +354,7 @@ def from_two_vectors(a: ArrayLike, b: ArrayLike) -> Array:
     """
     a = check_trailing(a, 3, "a")
     b = check_trailing(b, 3, "b")
-    a, b = broadcast_batch((a, 1), (b, 1))
+    a, b = broadcast_batch((a, 1, "a"), (b, 1, "b"))
     a_unit = a / jnp.sqrt(sum_squares(a, keepdims=True))
     b_unit = b / jnp.sqrt(sum_squares(b, keepdims=True))
     cosine = jnp.sum(a_unit * b_unit, axis=-1, keepdims=True)
@@ -357,7 +367,7 @@ def from_two_vectors(a: ArrayLike, b: ArrayLike) -> Array:
     # Obtuse: axis-angle form with the axis made exactly perpendicular to â.
     c_perp = c - jnp.sum(c * a_unit, axis=-1, keepdims=True) * a_unit
     s_sq = sum_squares(c_perp, keepdims=True)
-    has_axis = s_sq > 0
+    has_axis = ~(s_sq <= 0)  # NaN takes the computing branch
     s = jnp.sqrt(jnp.where(has_axis, s_sq, jnp.ones_like(s_sq)))
     # The antiparallel fallback axis â × e, e the basis vector of â's smallest component.
     basis = jnp.eye(3, dtype=a.dtype)[jnp.argmin(jnp.abs(a_unit), axis=-1)]
