@@ -21,7 +21,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from ._algebra import conjugate
-from ._integrate import lie_step, scan_steps
+from ._integrate import _check_count, _check_scalar, lie_step, scan_steps
 from ._kinematics import rate
 from ._numerics import (
     as_float_array,
@@ -63,9 +63,19 @@ def _check_point_masses(masses: ArrayLike, positions: ArrayLike):
             f"`masses` must have shape (..., n) with n = {positions.shape[-2]} to match `positions` "
             f"of shape {tuple(positions.shape)}; got shape {tuple(masses.shape)}."
         )
+    _check_nonempty(positions.shape[-2])
     _check_positive_masses(masses)
-    masses, positions = broadcast_batch((masses, 1), (positions, 2))
+    masses, positions = broadcast_batch((masses, 1, "masses"), (positions, 2, "positions"))
     return masses, positions
+
+
+def _check_nonempty(n: int) -> None:
+    """Raise a `ValueError` for an empty set of point masses (n = 0)."""
+    if n == 0:
+        raise ValueError(
+            "at least one point mass is needed: `masses` (..., n) and `positions` (..., n, 3) have "
+            "n = 0."
+        )
 
 
 def _moment(masses: Array, vectors: Array) -> Array:
@@ -80,7 +90,7 @@ def center_of_mass(masses: ArrayLike, positions: ArrayLike) -> Array:
 
     **Arguments:**
 
-    - `masses`: positive masses, shape `(..., n)`.
+    - `masses`: positive masses, shape `(..., n)`, n ≥ 1.
     - `positions`: positions, shape `(..., n, 3)`; leading axes broadcast with those of `masses`.
 
     **Returns:** the centre of mass, shape `(..., 3)`.
@@ -118,7 +128,7 @@ def inertia_tensor(
         about = center_of_mass(masses, positions)
     else:
         about = check_trailing(about, 3, "about")
-    positions, about = broadcast_batch((positions, 2), (about, 1))
+    positions, about = broadcast_batch((positions, 2, "positions"), (about, 1, "about"))
     masses = jnp.broadcast_to(masses, positions.shape[:-1])
     return _point_inertia(masses, positions - about[..., None, :])
 
@@ -153,7 +163,9 @@ def angular_momentum(
         about = center_of_mass(masses, positions)
     else:
         about = check_trailing(about, 3, "about")
-    positions, velocities, about = broadcast_batch((positions, 2), (velocities, 2), (about, 1))
+    positions, velocities, about = broadcast_batch(
+        (positions, 2, "positions"), (velocities, 2, "velocities"), (about, 1, "about")
+    )
     masses = jnp.broadcast_to(masses, positions.shape[:-1])
     return _moment(masses, cross(positions - about[..., None, :], velocities))
 
@@ -173,11 +185,8 @@ def principal_axes(inertia: ArrayLike) -> tuple[Array, Array]:
     The axes are defined up to sign (q is one of the four proper choices) and are not unique for equal
     moments; the gradient through q is then undefined (the eigenvector gradient divides by the gap).
     """
+    inertia = check_matrix(inertia, "inertia")
     inertia = _check_inertia(inertia, "inertia")
-    if inertia.ndim < 2:
-        raise ValueError(
-            f"`inertia` must have shape (..., 3, 3); got shape {tuple(inertia.shape)}."
-        )
     moments, axes = jnp.linalg.eigh(inertia)
     # Make the frame right-handed by flipping the last axis where needed.
     det = jnp.linalg.det(axes)
@@ -197,10 +206,11 @@ def _is_matrix(inertia: Array) -> bool:
 def _check_inertia(inertia: ArrayLike, name: str = "inertia") -> Array:
     """Check the shape (`(..., 3, 3)` or `(..., 3)`) and, when concrete, symmetry and positivity."""
     inertia = as_float_array(inertia, name)
-    if _is_matrix(inertia):
-        inertia = check_matrix(inertia, name)
-    else:
-        inertia = check_trailing(inertia, 3, name)
+    if not _is_matrix(inertia) and (inertia.ndim == 0 or inertia.shape[-1] != 3):
+        raise ValueError(
+            f"`{name}` must be a (..., 3, 3) matrix or principal moments (..., 3); got shape "
+            f"{tuple(inertia.shape)}."
+        )
     if is_tracer(inertia):
         return inertia
     values = np.asarray(inertia, dtype=np.float64)
@@ -221,12 +231,20 @@ def _check_inertia(inertia: ArrayLike, name: str = "inertia") -> Array:
     return inertia
 
 
-def _apply_inertia(inertia: Array, vector: Array) -> Array:
-    """I v for a `(..., 3, 3)` matrix or principal moments `(..., 3)`."""
+def _inertia_rank(inertia: Array) -> int:
+    """The number of trailing element axes of an inertia: 2 (matrix) or 1 (principal moments)."""
+    return 2 if _is_matrix(inertia) else 1
+
+
+def _apply_inertia(
+    inertia: Array, vector: Array, names: tuple[str, str] = ("inertia", "vector")
+) -> Array:
+    """I v for a `(..., 3, 3)` matrix or principal moments `(..., 3)`; `names` for error messages."""
+    inertia, vector = broadcast_batch(
+        (inertia, _inertia_rank(inertia), names[0]), (vector, 1, names[1])
+    )
     if _is_matrix(inertia):
-        inertia, vector = broadcast_batch((inertia, 2), (vector, 1))
         return jnp.sum(inertia * vector[..., None, :], axis=-1)
-    inertia, vector = broadcast_batch((inertia, 1), (vector, 1))
     return inertia * vector
 
 
@@ -242,10 +260,10 @@ def _inverse_inertia(inertia: Array) -> Array:
 
 def _euler_rhs(omega: Array, inertia: Array, inverse: Array, torque: Array | None) -> Array:
     """ω̇ = I⁻¹(τ + (Iω) × ω) with a precomputed I⁻¹."""
-    moment = cross(_apply_inertia(inertia, omega), omega)
+    moment = cross(_apply_inertia(inertia, omega, ("inertia", "omega")), omega)
     if torque is not None:
         moment = moment + torque
-    return _apply_inertia(inverse, moment)
+    return _apply_inertia(inverse, moment, ("inertia", "omega"))
 
 
 def euler_equations(
@@ -268,8 +286,11 @@ def euler_equations(
     """
     omega_body = check_trailing(omega_body, 3, "omega_body")
     inertia = _check_inertia(inertia)
+    named = [(omega_body, 1, "omega_body"), (inertia, _inertia_rank(inertia), "inertia")]
     if torque is not None:
         torque = check_trailing(torque, 3, "torque")
+        named.append((torque, 1, "torque"))
+    broadcast_batch(*named)  # only checks that the batch axes broadcast (naming the arguments)
     return _euler_rhs(omega_body, inertia, _inverse_inertia(inertia), torque)
 
 
@@ -286,8 +307,8 @@ def kinetic_energy(omega_body: ArrayLike, inertia: ArrayLike) -> Array:
     """
     omega_body = check_trailing(omega_body, 3, "omega_body")
     inertia = _check_inertia(inertia)
-    momentum = _apply_inertia(inertia, omega_body)
-    omega_body, momentum = broadcast_batch((omega_body, 1), (momentum, 1))
+    momentum = _apply_inertia(inertia, omega_body, ("inertia", "omega_body"))
+    omega_body, momentum = broadcast_batch((omega_body, 1, "omega_body"), (momentum, 1, "inertia"))
     return 0.5 * jnp.sum(omega_body * momentum, axis=-1)
 
 
@@ -303,12 +324,34 @@ def _rigid_body_field(inertia: Array, torque, frame: str):
         if torque is None:
             tau = None
         elif frame == "body":
-            tau = torque(t, q, omega_body)
+            tau = _call_torque(torque, t, q, omega_body)
         else:
-            tau = rotate(torque(t, q, rotate(omega_body, q)), conjugate(q))
+            omega = rotate(omega_body, q)
+            tau = rotate(_call_torque(torque, t, q, omega), conjugate(q))
         return omega_body, _euler_rhs(omega_body, inertia, inverse, tau)
 
     return field
+
+
+def _call_torque(torque: Callable, t, q: Array, omega: Array) -> Array:
+    """`torque(t, q, omega)`, checked at trace time to be `(..., 3)` broadcasting to ω's shape (it must
+    not add batch axes), and broadcast to it."""
+    tau = as_float_array(torque(t, q, omega), "torque(t, q, omega)")
+    shape = tuple(tau.shape)
+    try:
+        fits = (
+            len(shape) > 0
+            and shape[-1] == 3
+            and np.broadcast_shapes(shape, omega.shape) == tuple(omega.shape)
+        )
+    except ValueError:
+        fits = False
+    if not fits:
+        raise ValueError(
+            f"`torque(t, q, omega)` must return shape (..., 3) broadcasting to the angular velocity's "
+            f"shape {tuple(omega.shape)}; got shape {shape}."
+        )
+    return jnp.broadcast_to(tau, omega.shape)
 
 
 def _times(t0, dt, steps, dtype):
@@ -345,14 +388,16 @@ def simulate_rigid_body(
     - `omega0`: initial angular velocity, shape `(..., 3)`, in the frame `frame`.
     - `inertia`: body-frame inertia: a symmetric positive-definite `(..., 3, 3)` matrix or principal
       moments `(..., 3)` (checked when concrete; not under `jit`).
-    - `dt`: the time step; `num_steps`: the number of steps (a Python int).
+    - `dt`: the time step (a scalar); `num_steps`: the number of steps (a Python int ≥ 0).
     - `torque`: optional callable `torque(t, q, omega) -> (..., 3)` giving the torque in the frame
       `frame` from the time, the orientation and the angular velocity (in that frame). It is evaluated
-      at the method's stages and may close over parameters to differentiate.
+      at the method's stages and may close over parameters to differentiate. Its result must
+      broadcast to the shape of `omega` (checked at trace time).
     - `frame`: `"body"` (default; `omega0`, `omegas` and the torque are body-frame) or `"world"`.
     - `method`: `"cf4"`, `"midpoint"`, `"euler"`, `"rk4"` or `"naive"` (see `jaxquat.integrate`).
-    - `save`: `"all"` (every `save_every`-th state, including the initial one) or `"final"`.
-    - `t0`: the initial time (passed to `torque`).
+    - `save`: `"all"` (every `save_every`-th state, including the initial one) or `"final"`;
+      `save_every` ≥ 1 must divide `num_steps`.
+    - `t0`: the initial time (a scalar, passed to `torque`).
 
     **Returns:** `(qs, omegas)`: time-major orientations `(num_saved, ..., 4)` and angular velocities
     `(num_saved, ..., 3)` in the frame `frame` (without the time axis for `save="final"`).
@@ -366,6 +411,7 @@ def simulate_rigid_body(
     frame = check_frame(frame)
     method = check_choice(method, _METHODS, "method")
     check_choice(save, ("all", "final"), "save")
+    _check_steps(num_steps, save, save_every)
     q0 = check_trailing(q0, 4, "q0")
     omega0 = check_trailing(omega0, 3, "omega0")
     inertia = _check_inertia(inertia)
@@ -375,10 +421,11 @@ def simulate_rigid_body(
         )
     dtype = q0.dtype  # the orientation's dtype governs, as in `integrate`
     q0, omega0, inertia = q0.astype(dtype), omega0.astype(dtype), inertia.astype(dtype)
-    inertia_rank = 2 if _is_matrix(inertia) else 1
-    q0, omega0, inertia = broadcast_batch((q0, 1), (omega0, 1), (inertia, inertia_rank))
-    dt = as_float_array(dt, "dt").astype(dtype)
-    t0 = as_float_array(t0, "t0").astype(dtype)
+    q0, omega0, inertia = broadcast_batch(
+        (q0, 1, "q0"), (omega0, 1, "omega0"), (inertia, _inertia_rank(inertia), "inertia")
+    )
+    dt = _check_scalar(dt, "dt").astype(dtype)
+    t0 = _check_scalar(t0, "t0").astype(dtype)
 
     omega_body0 = omega0 if frame == "body" else rotate(omega0, conjugate(q0))
     field = _rigid_body_field(inertia, torque, frame)
@@ -394,6 +441,17 @@ def simulate_rigid_body(
     if frame == "world":
         omegas = rotate(omegas, qs)
     return qs, omegas
+
+
+def _check_steps(num_steps, save: str, save_every) -> None:
+    """`num_steps` ≥ 0 and `save_every` ≥ 1 static ints (not bools); `save_every` divides `num_steps`
+    when saving every state."""
+    num_steps = _check_count(num_steps, "num_steps", 0)
+    save_every = _check_count(save_every, "save_every", 1)
+    if save == "all" and num_steps % save_every:
+        raise ValueError(
+            f"`save_every` must divide `num_steps`; got save_every={save_every}, num_steps={num_steps}."
+        )
 
 
 class _RigidBodyVectorField(eqx.Module):
@@ -425,7 +483,8 @@ def rigid_body_vector_field(
     **Arguments:**
 
     - `inertia`: body-frame inertia, `(..., 3, 3)` or principal moments `(..., 3)`.
-    - `torque`: optional callable `torque(t, q, omega)` in the frame `frame`.
+    - `torque`: optional callable `torque(t, q, omega)` in the frame `frame`; its result must
+      broadcast to the shape of ω (checked at trace time).
     - `frame`: `"body"` (default) or `"world"`: the frame of ω and of the torque.
 
     **Returns:** a callable PyTree (an `equinox.Module`; the inertia is a differentiable leaf).
@@ -497,11 +556,11 @@ def simulate_deformable_body(
 
     **Arguments:**
 
-    - `masses`: positive masses, shape `(n,)` (checked when concrete).
+    - `masses`: positive masses, shape `(n,)`, n ≥ 1 (positivity checked when concrete).
     - `positions`: a callable `positions(t) -> (n, 3)` giving the body-frame shape; it must be
       differentiable in t and traceable by JAX. Its centre of mass may move; it is removed.
     - `q0`: initial orientation, shape `(4,)`.
-    - `dt`, `num_steps`: the time step and the number of steps (a Python int).
+    - `dt`, `num_steps`: the time step (a scalar) and the number of steps (a Python int ≥ 0).
     - `angular_momentum`: the conserved world-frame angular momentum about the centre of mass,
       shape `(3,)`; zero by default.
     - `method`, `save`, `save_every`, `t0`: as for `simulate_rigid_body`.
@@ -515,6 +574,7 @@ def simulate_deformable_body(
     """
     method = check_choice(method, _METHODS, "method")
     check_choice(save, ("all", "final"), "save")
+    _check_steps(num_steps, save, save_every)
     if not callable(positions):
         raise ValueError(
             f"`positions` must be a callable positions(t) -> (n, 3); got {type(positions).__name__}."
@@ -527,9 +587,10 @@ def simulate_deformable_body(
         )
     if masses.ndim != 1:
         raise ValueError(f"`masses` must have shape (n,); got shape {tuple(masses.shape)}.")
+    _check_nonempty(masses.shape[0])
     dtype = q0.dtype  # the orientation's dtype governs, as in `integrate`
-    t0 = as_float_array(t0, "t0").astype(dtype)
-    dt = as_float_array(dt, "dt").astype(dtype)
+    t0 = _check_scalar(t0, "t0").astype(dtype)
+    dt = _check_scalar(dt, "dt").astype(dtype)
     shape = jax.eval_shape(positions, t0).shape
     if shape != (masses.shape[0], 3):
         raise ValueError(

@@ -45,6 +45,7 @@ from ._numerics import (
     check_trailing,
     cos_half_minus_one,
     cross,
+    is_tracer,
     sinc_half,
     sum_squares,
 )
@@ -295,6 +296,9 @@ def _compensated_step(method: str, field: Callable, t, q: Array, c: Array, h, fr
 
 
 def _check_count(value, name: str, minimum: int) -> int:
+    """A static integer ≥ `minimum` (bool is rejected: `True` is not a count)."""
+    if isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"`{name}` must be a Python int (static); got {value!r} (a bool).")
     try:
         value = operator.index(value)
     except TypeError as e:
@@ -304,6 +308,16 @@ def _check_count(value, name: str, minimum: int) -> int:
     if value < minimum:
         raise ValueError(f"`{name}` must be >= {minimum}; got {value}.")
     return value
+
+
+def _check_flag(value, name: str, *, allow_none: bool = False) -> bool | None:
+    """A static Python bool (or `None` where that means automatic); anything else is a `ValueError`."""
+    if value is None and allow_none:
+        return None
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    expected = "True, False or None" if allow_none else "True or False"
+    raise ValueError(f"`{name}` must be {expected} (a static Python bool); got {value!r}.")
 
 
 # Below this many steps a plain scan is used even when checkpointing (its residuals are small).
@@ -396,6 +410,9 @@ def scan_steps(
     num_steps = _check_count(num_steps, "num_steps", 0)
     save_every = _check_count(save_every, "save_every", 1)
     unroll = _check_count(unroll, "unroll", 1)
+    checkpoint = _check_flag(checkpoint, "checkpoint")
+    if output is not None and not callable(output):
+        raise ValueError(f"`output` must be a callable output(carry) or None; got {output!r}.")
     k0 = jnp.asarray(0, jnp.int32)
     if save == "final":
         _, final = _run(step_fn, (k0, carry), num_steps, xs, checkpoint, unroll)
@@ -465,7 +482,7 @@ def sampled(omegas: ArrayLike, dt: ArrayLike, *, t0: ArrayLike = 0.0) -> Sampled
     **Arguments:**
 
     - `omegas`: time-major samples, shape `(T, *batch, 3)` (rad/s). Gradients flow to them.
-    - `dt`: the sampling interval (scalar, > 0).
+    - `dt`: the sampling interval (scalar, > 0; checked unless traced).
     - `t0`: the time of the first sample.
 
     **Reverse mode.** When `integrate` runs on the sampling grid (its `dt` and `t0` equal these, as
@@ -485,6 +502,10 @@ def sampled(omegas: ArrayLike, dt: ArrayLike, *, t0: ArrayLike = 0.0) -> Sampled
     # on its grid (they carry no gradient anyway). Arrays are used as arrays.
     dt = dt if _is_number(dt) else _check_scalar(dt, "dt")
     t0 = t0 if _is_number(t0) else _check_scalar(t0, "t0")
+    if not is_tracer(dt):
+        value = float(dt)
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"`dt` (the sampling interval) must be finite and > 0; got {value}.")
     return Sampled(omegas, dt, t0)
 
 
@@ -622,8 +643,9 @@ def integrate(
     see `benchmarks/README.md` for the measurements against SciPy, numpy-quaternion and jaxlie.
 
     **Errors:** a `ValueError` naming the argument for a bad `method`, `frame`, `save`, `save_every`,
-    `num_steps`, a non-scalar `dt`/`t0`, an `omega` of the wrong shape, or a q-dependent `omega` with
-    `"magnus4"` or `"magnus6"`.
+    `num_steps`, `unroll` or `renormalize_every` (static ints; a bool is not accepted), a non-bool
+    `checkpoint` / `compensated`, a non-scalar `dt`/`t0`, an `omega` of the wrong shape, or a
+    q-dependent `omega` with `"magnus4"` or `"magnus6"`.
 
     Example:
     ```python
@@ -639,6 +661,8 @@ def integrate(
     unroll = _check_count(unroll, "unroll", 1)
     if renormalize_every is not None:
         renormalize_every = _check_count(renormalize_every, "renormalize_every", 1)
+    compensated = _check_flag(compensated, "compensated", allow_none=True)
+    checkpoint = _check_flag(checkpoint, "checkpoint")
     if save == "all" and num_steps % save_every:
         raise ValueError(
             f"`save_every` must divide `num_steps`; got save_every={save_every}, num_steps={num_steps}."

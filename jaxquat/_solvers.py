@@ -32,14 +32,14 @@ import diffrax
 import equinox as eqx
 import jax.numpy as jnp
 import jax.tree_util as jtu
+import numpy as np
 from jax import lax
 from jaxtyping import Array, PyTree
 
 from ._algebra import conjugate, from_vector, log, multiply
-from ._integrate import _STAGE_FRACTIONS, magnus6_exponent
+from ._integrate import _STAGE_FRACTIONS, _check_scalar, magnus6_exponent
 from ._kinematics import corrected_rate, rate
 from ._numerics import (
-    as_float_array,
     check_frame,
     check_trailing,
     cross,
@@ -107,6 +107,16 @@ class _KinematicField(eqx.Module):
         else:
             omega = self.omega
         omega = check_trailing(omega, 3, "omega").astype(q.dtype)
+        batch = tuple(q.shape[:-1])
+        try:
+            fits = np.broadcast_shapes(omega.shape[:-1], batch) == batch
+        except ValueError:
+            fits = False
+        if not fits:
+            raise ValueError(
+                f"`omega` must have shape (..., 3) with leading axes broadcasting to those of the "
+                f"state `q` {batch}; got shape {tuple(omega.shape)} for q of shape {tuple(q.shape)}."
+            )
         if self.dt is None:
             return rate(q, omega, frame=self.frame)
         return corrected_rate(q, omega, self.dt.astype(q.dtype), frame=self.frame)
@@ -174,14 +184,14 @@ def corrected_vector_field(
 
     - `omega`: as for `kinematic_vector_field` (array `(..., 3)`, callable `omega(t, q)` or
       `omega(t, q, args)`, or `jaxquat.sampled(omegas, dt)`).
-    - `dt`: the step the correction is made for (must equal the solver's constant step).
+    - `dt`: the step the correction is made for (a scalar; must equal the solver's constant step).
     - `frame`: `"world"` or `"body"`.
 
     **Returns:** an `equinox.Module` `f` with `f(t, q, args)` = q̇_Δt, shape `(..., 4)`.
 
     At ω = 0 the factor is its series (value ½, correct gradient); see `jaxquat.corrected_rate`.
     """
-    dt = as_float_array(dt, "dt")
+    dt = _check_scalar(dt, "dt")
     return _make_field(omega, dt, frame)
 
 

@@ -1,0 +1,294 @@
+"""Input hardening of the integrator, rigid-body dynamics and solver entry points.
+
+Every bad input raises a `ValueError` at trace time (also under `jax.jit`) naming the argument and what
+was expected; valid inputs near the rejected ones keep working.
+"""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxquat as jq
+
+Q0 = jnp.array([1.0, 0.0, 0.0, 0.0])
+MOMENTS = jnp.array([1.0, 2.0, 3.5])
+OMEGA = jnp.array([0.3, -0.2, 1.0])
+
+
+# --------------------------------------------------------------------------------------------------
+# Defect 1: a non-scalar dt / t0
+
+
+@pytest.mark.parametrize("batch", [(), (2,)])
+def test_simulate_rigid_body_array_dt_names_dt(batch):
+    q0 = jnp.broadcast_to(Q0, batch + (4,))
+    omega0 = jnp.broadcast_to(OMEGA, batch + (3,))
+    with pytest.raises(ValueError, match=r"`dt` must be a scalar; got shape \(2,\)"):
+        jq.simulate_rigid_body(q0, omega0, MOMENTS, jnp.array([0.1, 0.2]), 2)
+    with pytest.raises(ValueError, match=r"`t0` must be a scalar"):
+        jq.simulate_rigid_body(q0, omega0, MOMENTS, 0.1, 2, t0=jnp.zeros(2))
+
+
+def test_simulate_deformable_body_array_dt_names_dt():
+    def positions(t):
+        return jnp.eye(3) * (1.0 + 0.1 * t)
+
+    with pytest.raises(ValueError, match=r"`dt` must be a scalar"):
+        jq.simulate_deformable_body(jnp.ones(3), positions, Q0, jnp.array([0.1, 0.2]), 2)
+    with pytest.raises(ValueError, match=r"`t0` must be a scalar"):
+        jq.simulate_deformable_body(jnp.ones(3), positions, Q0, 0.1, 2, t0=jnp.zeros(3))
+
+
+def test_scalar_dt_still_works_under_jit_and_vmap():
+    run = jax.jit(lambda dt: jq.simulate_rigid_body(Q0, OMEGA, MOMENTS, dt, 4, save="final")[0])
+    single = run(0.05)
+    batched = jax.vmap(run)(jnp.array([0.05, 0.05]))
+    np.testing.assert_allclose(batched, jnp.stack([single, single]), atol=1e-14)
+
+
+def test_corrected_vector_field_array_dt_names_dt():
+    with pytest.raises(ValueError, match=r"`dt` must be a scalar"):
+        jq.corrected_vector_field(OMEGA, jnp.array([0.1, 0.2]))
+
+
+# --------------------------------------------------------------------------------------------------
+# Defect 2: a torque callable returning the wrong shape
+
+
+@pytest.mark.parametrize("frame", ["body", "world"])
+@pytest.mark.parametrize("bad_shape", [(4,), (5, 3), (), (2,)])
+def test_torque_wrong_shape_names_torque(frame, bad_shape):
+    def torque(t, q, omega):
+        return jnp.ones(bad_shape)
+
+    with pytest.raises(
+        ValueError, match=r"`torque\(t, q, omega\)` must return shape \(\.\.\., 3\)"
+    ):
+        jq.simulate_rigid_body(Q0, OMEGA, MOMENTS, 0.1, 2, torque=torque, frame=frame)
+    with pytest.raises(ValueError, match=r"`torque.*\(3,\)"):
+        jax.jit(
+            lambda w: jq.simulate_rigid_body(Q0, w, MOMENTS, 0.1, 2, torque=torque, frame=frame)
+        )(OMEGA)
+
+
+def test_torque_must_not_add_batch_axes():
+    q0 = jnp.broadcast_to(Q0, (2, 4))
+    omega0 = jnp.broadcast_to(OMEGA, (2, 3))
+    with pytest.raises(ValueError, match=r"`torque.*\(2, 3\); got shape \(3, 3\)"):
+        jq.simulate_rigid_body(q0, omega0, MOMENTS, 0.1, 2, torque=lambda t, q, w: jnp.ones((3, 3)))
+
+
+def test_torque_broadcasting_to_the_state_still_works():
+    q0 = jnp.broadcast_to(Q0, (2, 4))
+    omega0 = jnp.broadcast_to(OMEGA, (2, 3))
+    tau = jnp.array([0.0, 0.0, 0.1])
+    q_shared, w_shared = jq.simulate_rigid_body(
+        q0, omega0, MOMENTS, 0.1, 3, torque=lambda t, q, w: tau, save="final"
+    )
+    q_full, w_full = jq.simulate_rigid_body(
+        q0,
+        omega0,
+        MOMENTS,
+        0.1,
+        3,
+        torque=lambda t, q, w: jnp.broadcast_to(tau, w.shape),
+        save="final",
+    )
+    np.testing.assert_allclose(q_shared, q_full, atol=1e-15)
+    np.testing.assert_allclose(w_shared, w_full, atol=1e-15)
+
+
+def test_rigid_body_vector_field_torque_wrong_shape_names_torque():
+    field = jq.rigid_body_vector_field(MOMENTS, torque=lambda t, q, w: jnp.ones(4))
+    with pytest.raises(ValueError, match=r"`torque\(t, q, omega\)`"):
+        diffrax.diffeqsolve(diffrax.ODETerm(field), jq.CF4(), 0.0, 0.1, 0.05, (Q0, OMEGA))
+
+
+# --------------------------------------------------------------------------------------------------
+# Defect 3: bools as counts, non-bools as flags
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        (dict(num_steps=True), "num_steps"),
+        (dict(num_steps=np.True_), "num_steps"),
+        (dict(save_every=True), "save_every"),
+        (dict(unroll=True), "unroll"),
+        (dict(renormalize_every=True), "renormalize_every"),
+        (dict(checkpoint="yes"), "checkpoint"),
+        (dict(checkpoint=1), "checkpoint"),
+        (dict(checkpoint=None), "checkpoint"),
+        (dict(compensated="x"), "compensated"),
+        (dict(compensated=0), "compensated"),
+    ],
+)
+def test_integrate_rejects_bad_static_arguments(kwargs, name):
+    args = dict(num_steps=4)
+    args.update(kwargs)
+    num_steps = args.pop("num_steps")
+    with pytest.raises(ValueError, match=f"`{name}`"):
+        jq.integrate(Q0, OMEGA, 0.1, num_steps, **args)
+    with pytest.raises(ValueError, match=f"`{name}`"):
+        jax.jit(lambda w: jq.integrate(Q0, w, 0.1, num_steps, **args))(OMEGA)
+
+
+@pytest.mark.parametrize("value", [0, -3])
+def test_integrate_rejects_non_positive_renormalize_every(value):
+    with pytest.raises(ValueError, match="`renormalize_every` must be >= 1"):
+        jq.integrate(Q0, OMEGA, 0.1, 4, renormalize_every=value)
+
+
+def test_integrate_accepts_bool_flags_and_numpy_ints():
+    base = jq.integrate(Q0, OMEGA, 0.1, 4, method="midpoint")
+    for kwargs in (
+        dict(checkpoint=False),
+        dict(checkpoint=np.True_),
+        dict(compensated=True),
+        dict(compensated=None),
+        dict(renormalize_every=None),
+        dict(renormalize_every=np.int64(2)),
+        dict(unroll=2),
+    ):
+        out = jq.integrate(Q0, OMEGA, 0.1, np.int64(4), method="midpoint", **kwargs)
+        np.testing.assert_allclose(out, base, atol=1e-14)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        (dict(num_steps=True), "num_steps"),
+        (dict(save_every=True), "save_every"),
+        (dict(num_steps=-1), "num_steps"),
+        (dict(num_steps=2.0), "num_steps"),
+    ],
+)
+def test_simulations_reject_bad_step_counts(kwargs, name):
+    args = dict(num_steps=2)
+    args.update(kwargs)
+    num_steps = args.pop("num_steps")
+    with pytest.raises(ValueError, match=f"`{name}`"):
+        jq.simulate_rigid_body(Q0, OMEGA, MOMENTS, 0.1, num_steps, **args)
+    with pytest.raises(ValueError, match=f"`{name}`"):
+        jq.simulate_deformable_body(
+            jnp.ones(3), lambda t: jnp.eye(3) * (1.0 + t), Q0, 0.1, num_steps, **args
+        )
+
+
+@pytest.mark.parametrize("dt", [0.0, -0.1, float("nan"), jnp.array(0.0)])
+def test_sampled_rejects_non_positive_interval(dt):
+    with pytest.raises(ValueError, match=r"`dt` \(the sampling interval\) must be finite and > 0"):
+        jq.sampled(jnp.ones((3, 3)), dt)
+
+
+def test_sampled_traced_interval_is_not_checked():
+    out = jax.jit(lambda dt: jq.integrate(Q0, jq.sampled(jnp.ones((3, 3)), dt), 0.1, 3))(0.1)
+    assert out.shape == (4, 4)
+
+
+# --------------------------------------------------------------------------------------------------
+# Defect 4: batch mismatches name the arguments
+
+
+@pytest.mark.parametrize(
+    ("call", "pattern"),
+    [
+        (lambda: jq.center_of_mass(jnp.ones((2, 3)), jnp.ones((4, 3, 3))), "`masses`.*`positions`"),
+        (
+            lambda: jq.inertia_tensor(jnp.ones(3), jnp.ones((2, 3, 3)), about=jnp.zeros((4, 3))),
+            "`positions`.*`about`",
+        ),
+        (
+            lambda: jq.angular_momentum(jnp.ones(3), jnp.ones((2, 3, 3)), jnp.ones((4, 3, 3))),
+            "`positions`.*`velocities`",
+        ),
+        (lambda: jq.euler_equations(jnp.ones((2, 3)), jnp.ones((4, 3))), "`omega_body`.*`inertia`"),
+        (
+            lambda: jq.euler_equations(jnp.ones((2, 3)), MOMENTS, jnp.ones((4, 3))),
+            "`omega_body`.*`torque`",
+        ),
+        (lambda: jq.kinetic_energy(jnp.ones((2, 3)), jnp.ones((4, 3))), "`inertia`.*`omega_body`"),
+        (
+            lambda: jq.kinetic_energy(jnp.ones((2, 3)), jnp.broadcast_to(jnp.eye(3), (4, 3, 3))),
+            "`inertia`.*`omega_body`",
+        ),
+        (
+            lambda: jq.simulate_rigid_body(jnp.ones((2, 4)), jnp.ones((3, 3)), MOMENTS, 0.1, 2),
+            "`q0`.*`omega0`",
+        ),
+        (
+            lambda: jq.simulate_rigid_body(Q0, jnp.ones((2, 3)), jnp.ones((5, 3)), 0.1, 2),
+            "`omega0`.*`inertia`",
+        ),
+    ],
+)
+def test_batch_mismatch_names_arguments(call, pattern):
+    with pytest.raises(ValueError, match=pattern):
+        call()
+
+
+def test_kinematic_vector_field_omega_batch_names_omega():
+    field = jq.kinematic_vector_field(jnp.ones((3, 3)))
+    with pytest.raises(
+        ValueError, match=r"`omega` must have shape \(\.\.\., 3\) with leading axes"
+    ):
+        field(0.0, jnp.broadcast_to(Q0, (2, 4)), None)
+    # Broadcasting ω over the state's batch is fine.
+    out = jq.kinematic_vector_field(OMEGA)(0.0, jnp.broadcast_to(Q0, (2, 4)), None)
+    assert out.shape == (2, 4)
+
+
+# --------------------------------------------------------------------------------------------------
+# Defect 5: empty point sets, count mismatch
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda: jq.center_of_mass(jnp.ones(0), jnp.ones((0, 3))),
+        lambda: jq.inertia_tensor(jnp.ones(0), jnp.ones((0, 3))),
+        lambda: jq.inertia_tensor(jnp.ones(0), jnp.ones((0, 3)), about=jnp.zeros(3)),
+        lambda: jq.angular_momentum(jnp.ones(0), jnp.ones((0, 3)), jnp.ones((0, 3))),
+        lambda: jq.center_of_mass(jnp.ones((2, 0)), jnp.ones((2, 0, 3))),
+        lambda: jq.simulate_deformable_body(
+            jnp.ones(0), lambda t: jnp.ones((0, 3)) * t, Q0, 0.1, 2
+        ),
+    ],
+)
+def test_empty_point_set_raises(call):
+    with pytest.raises(ValueError, match="at least one point mass is needed"):
+        call()
+    with pytest.raises(ValueError, match="at least one point mass is needed"):
+        jax.jit(call)()
+
+
+def test_point_count_mismatch_names_masses_and_positions():
+    with pytest.raises(ValueError, match=r"`masses`.*n = 3.*`positions`.*got shape \(2,\)"):
+        jq.center_of_mass(jnp.ones(2), jnp.ones((3, 3)))
+    with pytest.raises(ValueError, match=r"`masses`.*`positions`"):
+        jq.inertia_tensor(jnp.ones(4), jnp.ones((3, 3)))
+
+
+def test_single_point_mass_still_works():
+    np.testing.assert_allclose(jq.center_of_mass(jnp.ones(1), jnp.ones((1, 3))), jnp.ones(3))
+    np.testing.assert_allclose(jq.inertia_tensor(jnp.ones(1), jnp.ones((1, 3))), jnp.zeros((3, 3)))
+
+
+# --------------------------------------------------------------------------------------------------
+# Defect 6: principal_axes wants a matrix
+
+
+@pytest.mark.parametrize("shape", [(2, 2), (4, 3), (3,)])
+def test_principal_axes_wrong_shape_says_matrix(shape):
+    inertia = jnp.eye(2) if shape == (2, 2) else jnp.ones(shape)
+    with pytest.raises(ValueError, match=r"`inertia` must have shape \(\.\.\., 3, 3\)"):
+        jq.principal_axes(inertia)
+
+
+def test_inertia_wrong_shape_names_both_forms():
+    with pytest.raises(
+        ValueError, match=r"`inertia` must be a \(\.\.\., 3, 3\) matrix or principal"
+    ):
+        jq.euler_equations(OMEGA, jnp.eye(2))
