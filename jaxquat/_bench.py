@@ -34,6 +34,7 @@ import json
 import math
 import os
 import platform
+import re
 import statistics
 import sys
 import time
@@ -1568,8 +1569,44 @@ def _json_default(x):
 # Entry point
 
 
+class _ArgumentError(Exception):
+    """A bad `jaxquat bench` argument: reported by `main` in one line, exit status 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """An `ArgumentParser` whose errors are one-line `_ArgumentError`s, not a usage dump + exit."""
+
+    def error(self, message: str):  # noqa: D102 (argparse's signature)
+        raise _ArgumentError(message)
+
+
+def _positive_int(text: str) -> int:
+    if not re.fullmatch(r"\+?[0-9]+", text.strip()) or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
+    return int(text)
+
+
+def _positive_ints(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(_positive_int(part) for part in text.split(","))
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(
+            f"must be comma-separated positive integers, got {text!r}"
+        ) from None
+
+
+def _positive_seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number of seconds, got {text!r}")
+    return value
+
+
 def _parse(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="jaxquat bench",
         description="Benchmark jaxquat's integrators against SciPy, numpy-quaternion, jaxlie and plain JAX.",
     )
@@ -1582,13 +1619,19 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
         "results.json and w4_work_precision.png (default: benchmarks/results)",
     )
     parser.add_argument("--workloads", help="comma-separated subset of W1,W2,W3,W4,W5")
-    parser.add_argument("--sizes", help="comma-separated numbers of bodies (W1–W3, W5)")
-    parser.add_argument("--dtypes", help="comma-separated: float64,float32")
-    parser.add_argument("--steps", type=int, help="number of steps T")
-    parser.add_argument("--repeats", type=int, help="timing rounds per row")
-    parser.add_argument("--w5-sizes", help="comma-separated numbers of bodies for W5")
     parser.add_argument(
-        "--budget", type=float, help="seconds one peer call may take before it runs fewer steps"
+        "--sizes", type=_positive_ints, help="comma-separated numbers of bodies (W1–W3, W5)"
+    )
+    parser.add_argument("--dtypes", help="comma-separated: float64,float32")
+    parser.add_argument("--steps", type=_positive_int, help="number of steps T")
+    parser.add_argument("--repeats", type=_positive_int, help="timing rounds per row")
+    parser.add_argument(
+        "--w5-sizes", type=_positive_ints, help="comma-separated numbers of bodies for W5"
+    )
+    parser.add_argument(
+        "--budget",
+        type=_positive_seconds,
+        help="seconds one peer call may take before it runs fewer steps",
     )
     parser.add_argument("--quiet", action="store_true", help="print only the final table")
     parser.add_argument(
@@ -1607,7 +1650,10 @@ def main(argv: list[str] | None = None) -> int:
     """
     try:
         args = _parse(argv)
-    except SystemExit as e:
+    except _ArgumentError as e:
+        print(f"jaxquat bench: error: {' '.join(str(e).split())}", file=sys.stderr)
+        return 2
+    except SystemExit as e:  # --help
         return int(e.code or 0) if e.code in (0, None) else 2
     preset = PRESETS[args.preset]
     try:
@@ -1619,7 +1665,7 @@ def main(argv: list[str] | None = None) -> int:
                 raise ValueError(f"unknown workload(s) {', '.join(unknown)}; expected W1..W5")
             changes["workloads"] = workloads
         if args.sizes:
-            changes["sizes"] = tuple(int(n) for n in args.sizes.split(","))
+            changes["sizes"] = args.sizes
             changes["w5_sizes"] = changes["sizes"]
         if args.dtypes:
             dtypes = tuple(d.strip() for d in args.dtypes.split(","))
@@ -1627,7 +1673,7 @@ def main(argv: list[str] | None = None) -> int:
                 raise ValueError(f"--dtypes must be float64 and/or float32; got {args.dtypes}")
             changes["dtypes"] = dtypes
         if args.w5_sizes:
-            changes["w5_sizes"] = tuple(int(n) for n in args.w5_sizes.split(","))
+            changes["w5_sizes"] = args.w5_sizes
         if args.budget is not None:
             changes["budget"] = args.budget
         if args.steps is not None:

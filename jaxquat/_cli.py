@@ -17,6 +17,7 @@ import importlib
 import json
 import math
 import os
+import re
 import sys
 import time
 import warnings
@@ -46,13 +47,41 @@ class _Parser(argparse.ArgumentParser):
 # Value parsers (used for options and for TOML values)
 
 
+_INTEGER = re.compile(r"[+-]?[0-9]+")
+
+
+def _integer(text) -> int:
+    """`int(text)` for plain decimal integers only (not `1_0`, `1.0`, non-ASCII digits)."""
+    if isinstance(text, bool) or not (
+        isinstance(text, int) or (isinstance(text, str) and _INTEGER.fullmatch(text))
+    ):
+        raise ValueError(text)
+    return int(text)
+
+
 def _positive_int(text: str) -> int:
     try:
-        value = int(text)
+        value = _integer(text)
     except (TypeError, ValueError):
         raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
+    return value
+
+
+_SEED_MAX = 2**32 - 1
+
+
+def _seed(text: str) -> int:
+    """A random seed: an integer in 0 … 2³² − 1 (JAX keeps 32 bits of it without x64)."""
+    try:
+        value = _integer(text)
+    except (TypeError, ValueError):
+        raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
+    if not 0 <= value <= _SEED_MAX:
+        raise argparse.ArgumentTypeError(
+            f"must be an integer from 0 to {_SEED_MAX} (2**32 - 1), got {value}"
+        )
     return value
 
 
@@ -71,9 +100,13 @@ def _nonnegative_float(text: str) -> float:
 
 
 def _finite_float(text: str) -> float:
+    if isinstance(text, bool) or not (
+        isinstance(text, (int, float)) or (isinstance(text, str) and _is_number(text))
+    ):
+        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}")
     try:
         value = float(text)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"must be finite, got {text!r}")
@@ -134,13 +167,15 @@ def read_observations_csv(path: str):
         fields = [f.strip() for f in line.split(",")]
         if not seen_content:
             seen_content = True
-            if not all(_is_number(f) for f in fields):
-                names = tuple(f.lower() for f in fields)
-                if names != _CSV_COLUMNS:
-                    raise CommandLineError(
-                        f"{path} line {number}: header must be t,w,x,y,z, got {line!r}"
-                    )
+            names = tuple(f.lower() for f in fields)
+            if names == _CSV_COLUMNS:
                 continue
+            # A line with no number in it is a (wrong) header; one with numbers is a data row (with a
+            # typo, reported below as such).
+            if not any(_is_number(f) for f in fields):
+                raise CommandLineError(
+                    f"{path} line {number}: header must be t,w,x,y,z, got {line!r}"
+                )
         if len(fields) != 5:
             raise CommandLineError(
                 f"{path} line {number}: expected 5 columns (t,w,x,y,z), got {len(fields)}"
@@ -164,6 +199,12 @@ def read_observations_csv(path: str):
             )
         if values[1] == values[2] == values[3] == values[4] == 0.0:
             raise CommandLineError(f"{path} line {number}: the quaternion (w,x,y,z) is zero")
+        largest = max(abs(v) for v in values[1:])
+        if largest < sys.float_info.min:
+            raise CommandLineError(
+                f"{path} line {number}: the quaternion (w,x,y,z) is too small to normalise "
+                f"accurately (largest component {largest:g} is below {sys.float_info.min:g})"
+            )
         rows.append(values)
         line_numbers.append(number)
     if not rows:
@@ -175,15 +216,17 @@ def read_observations_csv(path: str):
     return data[:, 0], data[:, 1:]
 
 
+# A decimal number as people write it (and `nan`/`inf`, rejected later as not finite). Not Python's
+# `float()` syntax, which also takes `1_0`, non-ASCII digits and surrounding whitespace.
+_NUMBER = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_NON_FINITE = re.compile(r"[+-]?(?:nan|inf|infinity)", re.IGNORECASE)
+
+
 def _is_number(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
+    return bool(_NUMBER.fullmatch(text) or _NON_FINITE.fullmatch(text))
 
 
-# Options of `simulate` that a TOML file may set: name → (parser, description).
+# Options of `simulate` that a TOML file may set: name → parser (`bool` / `str`: the TOML type).
 _SIMULATE_KEYS: dict[str, Any] = {
     "bodies": _positive_int,
     "steps": _positive_int,
@@ -193,17 +236,35 @@ _SIMULATE_KEYS: dict[str, Any] = {
     "omega_scale": _nonnegative_float,
     "omega_mean": _vector3,
     "inertia": _inertia,
-    "seed": int,
+    "seed": _seed,
     "dtype": str,
     "save_every": _positive_int,
     "chunk_size": _positive_int,
     "output": str,
     "statistics": bool,
 }
+_INTEGER_KEYS = ("bodies", "steps", "seed", "save_every", "chunk_size")
+_VECTOR_KEYS = ("omega_mean", "inertia")
+_FRAMES = ("world", "body")
+
+
+def _methods(rigid: bool) -> tuple[str, ...]:
+    from ._integrate import METHODS
+
+    return tuple(m for m in METHODS if not (rigid and m.startswith("magnus")))
+
+
+def _is_real(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def read_simulate_toml(path: str) -> dict[str, Any]:
     """Read and check a `simulate` configuration; errors name the file, the line and the key."""
+    return _read_simulate_toml(path)[0]
+
+
+def _read_simulate_toml(path: str) -> tuple[dict[str, Any], dict[str, str]]:
+    """`read_simulate_toml`, and for each key where it was set (`"file line N"`, for messages)."""
     import tomllib
 
     text = _read_text(path, "TOML configuration")
@@ -221,6 +282,7 @@ def read_simulate_toml(path: str) -> dict[str, Any]:
         return path
 
     config: dict[str, Any] = {}
+    sources: dict[str, str] = {}
     for key, value in table.items():
         if key not in _SIMULATE_KEYS:
             known = ", ".join(sorted(_SIMULATE_KEYS))
@@ -232,22 +294,37 @@ def read_simulate_toml(path: str) -> dict[str, Any]:
         elif parse is str:
             if not isinstance(value, str):
                 raise CommandLineError(f"{where(key)}: {key} must be a string, got {value!r}")
-        elif parse is int:
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise CommandLineError(f"{where(key)}: {key} must be an integer, got {value!r}")
-        else:
-            if isinstance(value, bool) or not isinstance(value, (int, float, list, str)):
-                raise CommandLineError(f"{where(key)}: {key} has the wrong type: {value!r}")
-            if parse in (_positive_int,) and not isinstance(value, int):
+            choices = {"frame": _FRAMES, "dtype": _DTYPES, "method": _methods(rigid=False)}.get(key)
+            if choices is not None and value not in choices:
                 raise CommandLineError(
-                    f"{where(key)}: {key} must be a positive integer, got {value!r}"
+                    f"{where(key)}: {key} must be one of {', '.join(choices)}, got {value!r}"
+                )
+            if key == "output" and not value:
+                raise CommandLineError(f"{where(key)}: output must name a directory, got ''")
+        else:
+            # Numbers must be TOML numbers (a quoted "0.1" is a string, not a number).
+            if key in _INTEGER_KEYS:
+                if isinstance(value, bool) or not isinstance(value, int):
+                    raise CommandLineError(
+                        f"{where(key)}: {key} must be an integer (unquoted), got {value!r}"
+                    )
+            elif key in _VECTOR_KEYS:
+                if not isinstance(value, list) or not all(_is_real(v) for v in value):
+                    raise CommandLineError(
+                        f"{where(key)}: {key} must be an array of three numbers (unquoted), "
+                        f"got {value!r}"
+                    )
+            elif not _is_real(value):
+                raise CommandLineError(
+                    f"{where(key)}: {key} must be a number (unquoted), got {value!r}"
                 )
             try:
-                value = parse(value if isinstance(value, list) else str(value))
+                value = parse(value if key in _VECTOR_KEYS else str(value))
             except argparse.ArgumentTypeError as e:
                 raise CommandLineError(f"{where(key)}: {key} {e}") from None
         config[key] = value
-    return config
+        sources[key] = where(key)
+    return config, sources
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -302,14 +379,35 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         "output": "jaxquat_ensemble",
         "statistics": True,
     }
+    # Where each value came from, for error messages: the option, or the file and line.
+    sources = {key: f"--{key.replace('_', '-')}" for key in config}
     if args.config is not None:
-        config.update(read_simulate_toml(args.config))
+        from_file, file_sources = _read_simulate_toml(args.config)
+        config.update(from_file)
+        sources.update(file_sources)
     for key in config:  # command-line options override the file
         value = getattr(args, key, None)
         if value is not None:
             config[key] = value
+            sources[key] = f"--{key.replace('_', '-')}"
     if config["dtype"] not in _DTYPES:
-        raise CommandLineError(f"dtype must be float32 or float64, got {config['dtype']!r}")
+        raise CommandLineError(
+            f"{sources['dtype']}: dtype must be float32 or float64, got {config['dtype']!r}"
+        )
+    rigid = config["inertia"] is not None
+    if config["method"] is not None and config["method"] not in _methods(rigid):
+        kind = "rigid bodies (inertia given)" if rigid else "kinematic bodies"
+        raise CommandLineError(
+            f"{sources['method']}: method for {kind} must be one of "
+            f"{', '.join(_methods(rigid))}, got {config['method']!r}"
+        )
+    if config["frame"] is not None and config["frame"] not in _FRAMES:
+        raise CommandLineError(
+            f"{sources['frame']}: frame must be world or body, got {config['frame']!r}"
+        )
+    if not config["output"]:
+        raise CommandLineError(f"{sources['output']}: must name a directory, got ''")
+    _check_representable(config, sources, config["dtype"])
     _setup_jax(config["dtype"])
 
     import jax
@@ -322,6 +420,13 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     q0, omega = _random_ensemble(
         config["seed"], config["bodies"], config["omega_mean"], config["omega_scale"], dtype
     )
+    if not bool(jnp.all(jnp.isfinite(omega))):
+        raise CommandLineError(
+            f"the initial angular velocities ω = omega_mean + omega_scale·N(0, I) overflow "
+            f"{dtype.name} ({sources['omega_mean']} {config['omega_mean']}, "
+            f"{sources['omega_scale']} {config['omega_scale']:g}); use smaller values or "
+            "--dtype float64"
+        )
     inertia = None if config["inertia"] is None else jnp.asarray(config["inertia"], dtype)
     try:
         result = simulate_ensemble(
@@ -345,6 +450,15 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 130
+    outputs = {"final orientations": result.final, "final angular velocities": result.final_omega}
+    if result.total_angle is not None:
+        outputs["total rotation angles"] = result.total_angle
+    _check_finite_results(
+        outputs,
+        f"the simulation (dt {config['dt']:g}, omega_scale {config['omega_scale']:g}, "
+        f"{dtype.name}); {config['output']}/ holds the invalid results. Use a smaller "
+        "--dt / --omega-scale or --dtype float64",
+    )
     kind = "rigid bodies" if inertia is not None else "kinematic bodies"
     method = config["method"] or ("cf4" if inertia is not None else "euler")
     rows = [
@@ -373,6 +487,52 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_representable(config: dict[str, Any], sources: dict[str, str], dtype: str) -> None:
+    """Reject option values that overflow the run's dtype or underflow to zero in it."""
+    import numpy as np
+
+    info = np.finfo(np.dtype(dtype))
+    for key in ("dt", "omega_scale", "omega_mean", "inertia"):
+        value = config[key]
+        if value is None:
+            continue
+        exact = np.asarray(value, dtype=np.float64)
+        with np.errstate(over="ignore", under="ignore"):
+            converted = exact.astype(info.dtype)
+        if not np.all(np.isfinite(converted)):
+            raise CommandLineError(
+                f"{sources[key]}: {key} {_show(value)} overflows {dtype} (largest {info.max:g}); "
+                "use a smaller value or --dtype float64"
+            )
+        if np.any((converted == 0) & (exact != 0)) or np.any(
+            (exact != 0) & (np.abs(exact) < info.tiny)
+        ):
+            raise CommandLineError(
+                f"{sources[key]}: {key} {_show(value)} underflows {dtype} (smallest normal "
+                f"{info.tiny:g}); use a larger value or --dtype float64"
+            )
+
+
+def _show(value) -> str:
+    if isinstance(value, (list, tuple)):
+        return ",".join(f"{v:g}" for v in value)
+    return f"{value:g}"
+
+
+def _check_finite_results(arrays: dict[str, Any], what: str) -> None:
+    """A one-line error (exit 2) when any result is NaN or infinite, instead of a bogus summary."""
+    import numpy as np
+
+    for name, array in arrays.items():
+        values = np.asarray(array)
+        bad = ~np.isfinite(values)
+        if bad.any():
+            raise CommandLineError(
+                f"{name} are not finite (NaN or inf in {int(bad.sum()):,} of {values.size:,} "
+                f"values) after {what}"
+            )
+
+
 def _print_table(rows: Sequence[tuple[str, str]]) -> None:
     width = max(len(k) for k, _ in rows)
     for key, value in rows:
@@ -393,8 +553,11 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     kwargs: dict[str, Any] = {"model": args.model, "frame": args.frame}
     if args.knots is not None:
         kwargs["knots"] = args.knots
-    norms = np.linalg.norm(quaternions, axis=-1, keepdims=True)
-    fit = fit_angular_velocity(times, quaternions / norms, **kwargs)
+    # Scale each row by its largest component first: |q|² of 1e160 or 1e-170 would over/underflow.
+    scaled = quaternions / np.max(np.abs(quaternions), axis=-1, keepdims=True)
+    fit = fit_angular_velocity(
+        times, scaled / np.linalg.norm(scaled, axis=-1, keepdims=True), **kwargs
+    )
     residuals = np.degrees(np.asarray(fit.residual_angles, dtype=np.float64))
     report: dict[str, Any] = {
         "model": args.model,
@@ -412,8 +575,20 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     else:
         report["knots"] = np.asarray(fit.omega.knots, dtype=np.float64).tolist()
         report["omega_at_knots"] = np.asarray(fit.omega.values, dtype=np.float64).tolist()
+    _check_finite_results(
+        {
+            "fitted values": [
+                *report["q0"],
+                report["residual_rms_deg"],
+                report["residual_max_deg"],
+                *np.ravel(report.get("omega", [])),
+                *np.ravel(report.get("omega_at_knots", [])),
+            ]
+        },
+        f"fitting {args.file}",
+    )
     if args.json:
-        print(json.dumps(report))
+        print(json.dumps(report, allow_nan=False))
         return 0
     if args.model == "constant":
         x, y, z = report["omega"]
@@ -455,6 +630,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _check_png_path(path: str) -> str:
+    if not path:
+        raise CommandLineError("--output must name a .png file, got ''")
     if not path.lower().endswith(".png"):
         raise CommandLineError(f"--output must name a .png file, got {path!r}")
     directory = os.path.dirname(os.path.abspath(path))
@@ -553,6 +730,16 @@ def run_demo(*, bodies: int, steps: int, output: str, seed: int, progress: bool)
     times_fit, omega_true, fit = _demo_fit(seed)
     omega_fit = np.asarray(fit.omega, dtype=np.float64)
     residuals = np.degrees(np.asarray(fit.residual_angles, dtype=np.float64))
+    _check_finite_results(
+        {
+            "attitude spreads": spread_deg,
+            "final angular velocities": result.final_omega,
+            "energy drifts": [drift],
+            "fitted ω": omega_fit,
+            "fit residuals": residuals,
+        },
+        f"the demo ({bodies:,} bodies, {steps:,} steps, seed {seed})",
+    )
 
     devices = jax.devices()
     print(
@@ -650,7 +837,7 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     demo.add_argument("--steps", type=_positive_int, default=400, help="time steps (400)")
     demo.add_argument("--output", default="jaxquat_demo.png", help="PNG path (./jaxquat_demo.png)")
-    demo.add_argument("--seed", type=int, default=0, help="random seed (0)")
+    demo.add_argument("--seed", type=_seed, default=0, help="random seed 0 … 2**32-1 (0)")
     demo.add_argument("--no-progress", action="store_true", help="no progress bar")
     demo.set_defaults(
         func=lambda a: run_demo(
@@ -666,7 +853,7 @@ def _build_parser() -> argparse.ArgumentParser:
     simulate.add_argument(
         "--method", help="integrator (euler, midpoint, magnus4, magnus6, cf4, naive, rk4)"
     )
-    simulate.add_argument("--frame", choices=("world", "body"), help="frame of ω")
+    simulate.add_argument("--frame", choices=_FRAMES, help="frame of ω")
     simulate.add_argument(
         "--omega-scale",
         dest="omega_scale",
@@ -679,7 +866,7 @@ def _build_parser() -> argparse.ArgumentParser:
         type=_inertia,
         help="principal moments a,b,c: simulate torque-free rigid bodies",
     )
-    simulate.add_argument("--seed", type=int, help="random seed (0)")
+    simulate.add_argument("--seed", type=_seed, help="random seed 0 … 2**32-1 (0)")
     simulate.add_argument("--dtype", choices=_DTYPES, help="float32 (default) or float64")
     simulate.add_argument(
         "--save-every",
@@ -754,7 +941,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{_PROG}: error: {_one_line(e)}", file=sys.stderr)
         return 2
     except OSError as e:  # the machine's side: an unwritable output path, a full disk, ...
-        where = f"{e.filename}: " if e.filename else ""
+        where = f"{e.filename!r}: " if e.filename == "" else f"{e.filename}: " if e.filename else ""
         print(f"{_PROG}: error: {where}{e.strerror or _one_line(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -353,7 +353,7 @@ class _StateWriter:
         names = [n for r in old.get("records", []) for n in r.get("files", {}).values()]
         names += list(old.get("final", {}).values())
         for name in names:
-            if os.path.basename(name) == name and os.path.exists(os.path.join(self.path, name)):
+            if _plain_npy_name(name) and os.path.isfile(os.path.join(self.path, name)):
                 os.remove(os.path.join(self.path, name))
 
     def _save(self, name: str, array: np.ndarray) -> None:
@@ -408,7 +408,15 @@ def load_ensemble(path: str | os.PathLike) -> dict[str, Any]:
       `"total_angle"` and `"max_angle_from_start"`;
     - `"metadata"`: the run's parameters (method, frame, dt, …).
     """
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(
+            f"`path` must be a directory name (str or os.PathLike); got {type(path).__name__}."
+        )
     path = os.fspath(path)
+    if not isinstance(path, str):  # a bytes path
+        path = os.fsdecode(path)
+    if not path:
+        raise ValueError("`path` must name a directory; got ''.")
     if not os.path.exists(path):
         raise ValueError(f"`path` {path!r} does not exist.")
     if not os.path.isdir(path):
@@ -431,6 +439,54 @@ class _MalformedEnsemble(Exception):
     pass
 
 
+def _index_int(index: dict, key: str, *, minimum: int = 0, optional: bool = False) -> int | None:
+    value = index.get(key) if optional else index[key]
+    if optional and value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise _MalformedEnsemble(
+            f"index.json: {key} must be an integer >= {minimum}, got {value!r}."
+        )
+    return value
+
+
+def _index_float(index: dict, key: str) -> float:
+    value = index[key]
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise _MalformedEnsemble(f"index.json: {key} must be a finite number, got {value!r}.")
+    return float(value)
+
+
+def _index_bool(index: dict, key: str) -> bool:
+    value = index[key]
+    if not isinstance(value, bool):
+        raise _MalformedEnsemble(f"index.json: {key} must be true or false, got {value!r}.")
+    return value
+
+
+def _plain_npy_name(name) -> bool:
+    """Whether `name` is a bare `.npy` file name (no directory part, nothing leading elsewhere)."""
+    return (
+        isinstance(name, str)
+        and name.endswith(".npy")
+        and name not in (".npy", "..npy")
+        and os.path.basename(name) == name
+        and not (os.path.altsep is not None and os.path.altsep in name)
+        and not os.path.isabs(name)
+        and "\0" not in name
+    )
+
+
+def _data_file(path: str, name, where: str) -> str:
+    """The file `name` inside the ensemble directory; names that lead elsewhere are refused."""
+    if not _plain_npy_name(name):
+        raise _MalformedEnsemble(
+            f"index.json: {where} names {name!r}, expected a plain .npy file name inside the "
+            "ensemble directory."
+        )
+    return os.path.join(path, name)
+
+
 def _read_ensemble(path: str, index_path: str) -> dict[str, Any]:
     with open(index_path, encoding="utf-8") as f:
         index = json.load(f)
@@ -438,15 +494,62 @@ def _read_ensemble(path: str, index_path: str) -> dict[str, Any]:
         raise _MalformedEnsemble(
             "index.json is not a jaxquat ensemble index (not a jaxquat ensemble)."
         )
-    batch = tuple(int(n) for n in index["batch_shape"])
-    dtype = np.dtype(index["dtype"])
+    shape = index["batch_shape"]
+    if not isinstance(shape, list) or any(
+        isinstance(n, bool) or not isinstance(n, int) or n < 0 for n in shape
+    ):
+        raise _MalformedEnsemble(
+            f"index.json: batch_shape must be a list of non-negative integers, got {shape!r}."
+        )
+    batch = tuple(shape)
+    if index["dtype"] not in ("float16", "bfloat16", "float32", "float64"):
+        raise _MalformedEnsemble(
+            f"index.json: dtype must name a float dtype, got {index['dtype']!r}."
+        )
+    dtype = jnp.dtype(index["dtype"])
+    dynamic = _index_bool(index, "dynamic") if "dynamic" in index else False
+    complete = _index_bool(index, "complete")
+    t0 = _index_float(index, "t0")
+    dt = _index_float(index, "dt")
+    num_steps = _index_int(index, "num_steps") if "num_steps" in index else None
+    steps_done = _index_int(index, "steps_done")
+    _index_int(index, "save_every", minimum=1, optional=True)
+    if num_steps is not None and steps_done > num_steps:
+        raise _MalformedEnsemble(
+            f"index.json: steps_done {steps_done} exceeds num_steps {num_steps}."
+        )
+    if complete and num_steps is not None and steps_done != num_steps:
+        raise _MalformedEnsemble(
+            f"index.json: complete, but steps_done {steps_done} != num_steps {num_steps}."
+        )
+    records = index["records"]
+    if not isinstance(records, list) or not all(isinstance(r, dict) for r in records):
+        raise _MalformedEnsemble("index.json: records must be a list of {steps, files} tables.")
+    for number, record in enumerate(records):  # a missing key is a KeyError, reported as such
+        if not isinstance(record["steps"], list) or not isinstance(record["files"], dict):
+            raise _MalformedEnsemble(
+                f"index.json: record {number} must have a list of steps and a table of files."
+            )
+    steps = [s for r in records for s in r["steps"]]
+    if any(isinstance(k, bool) or not isinstance(k, int) or k < 0 for k in steps):
+        raise _MalformedEnsemble(
+            f"index.json: saved steps must be non-negative integers, got {steps!r}."
+        )
+    if any(b <= a for a, b in zip(steps, steps[1:], strict=False)) or (
+        steps and steps[-1] > steps_done
+    ):
+        raise _MalformedEnsemble(
+            f"index.json: saved steps must increase and not exceed steps_done {steps_done}, "
+            f"got {steps!r}."
+        )
     out: dict[str, Any] = {}
-    widths = {"states": 4, "omegas": 3} if index.get("dynamic") else {"states": 4}
+    widths = {"states": 4, "omegas": 3} if dynamic else {"states": 4}
     for key, width in widths.items():
         parts = []
-        for number, record in enumerate(index["records"]):
+        for number, record in enumerate(records):
             name = record["files"][key]
-            part = np.load(os.path.join(path, name), allow_pickle=False)
+            filename = _data_file(path, name, f"record {number} ({key})")
+            part = np.load(filename, allow_pickle=False)
             expected = (len(record["steps"]),) + batch + (width,)
             if part.shape != expected or part.dtype != dtype:
                 raise _MalformedEnsemble(
@@ -457,13 +560,32 @@ def _read_ensemble(path: str, index_path: str) -> dict[str, Any]:
         out[key] = (
             np.concatenate(parts, axis=0) if parts else np.zeros((0,) + batch + (width,), dtype)
         )
-    steps = [int(s) for r in index["records"] for s in r["steps"]]
     out["steps"] = np.asarray(steps, dtype=np.int64)
-    out["times"] = float(index["t0"]) + float(index["dt"]) * out["steps"].astype(np.float64)
-    for key, name in index.get("final", {}).items():
-        out[key] = np.load(os.path.join(path, name), allow_pickle=False)
-    out["complete"] = bool(index["complete"])
-    out["steps_done"] = int(index["steps_done"])
+    out["times"] = t0 + dt * out["steps"].astype(np.float64)
+    final = index.get("final", {})
+    if not isinstance(final, dict):
+        raise _MalformedEnsemble(f"index.json: final must be a table of files, got {final!r}.")
+    final_shapes = {
+        "final": batch + (4,),
+        "final_omega": batch + (3,),
+        "angle_from_start": batch,
+        "total_angle": batch,
+        "max_angle_from_start": batch,
+    }
+    for key, name in final.items():
+        if key not in final_shapes:
+            raise _MalformedEnsemble(
+                f"index.json: unknown final array {key!r} (known: {', '.join(final_shapes)})."
+            )
+        part = np.load(_data_file(path, name, f"final ({key})"), allow_pickle=False)
+        if part.shape != final_shapes[key] or part.dtype != dtype:
+            raise _MalformedEnsemble(
+                f"{name} ({key}) holds {part.dtype}{list(part.shape)}, the index says "
+                f"{dtype}{list(final_shapes[key])}."
+            )
+        out[key] = part
+    out["complete"] = complete
+    out["steps_done"] = steps_done
     out["metadata"] = {k: v for k, v in index.items() if k not in ("records", "final")}
     return out
 
@@ -479,6 +601,23 @@ def _check_positive_int(value, name: str, *, allow_zero: bool = False) -> int:
     if value < low:
         raise ValueError(f"`{name}` must be {'>= 0' if allow_zero else '>= 1'}; got {value}.")
     return int(value)
+
+
+def _check_real_scalar(value, name: str) -> None:
+    """A finite real scalar (Python, NumPy or JAX number; not a bool or a string)."""
+    try:
+        array = np.asarray(value)
+    except Exception:  # noqa: BLE001 (a tracer or an exotic object: checked below)
+        array = None
+    if (
+        array is None
+        or isinstance(value, (bool, np.bool_))
+        or array.ndim != 0
+        or not (np.issubdtype(array.dtype, np.integer) or np.issubdtype(array.dtype, np.floating))
+    ):
+        raise ValueError(f"`{name}` must be a real scalar (a number); got {value!r}.")
+    if not np.isfinite(array):
+        raise ValueError(f"`{name}` must be finite; got {value!r}.")
 
 
 def _check_inertia(inertia: ArrayLike) -> tuple[Array, tuple[int, ...]]:
@@ -626,8 +765,9 @@ def simulate_ensemble(
     dt_array = as_float_array(dt, "dt")
     if dt_array.ndim != 0:
         raise ValueError(f"`dt` must be a scalar; got shape {tuple(dt_array.shape)}.")
-    if not jnp.issubdtype(jnp.asarray(t0).dtype, jnp.number) or jnp.ndim(t0) != 0:
-        raise ValueError(f"`t0` must be a scalar; got {t0!r}.")
+    _check_real_scalar(t0, "t0")
+    if not isinstance(dt, jax.core.Tracer) and not np.isfinite(np.asarray(dt_array)):
+        raise ValueError(f"`dt` must be finite; got {float(dt_array)!r}.")
     if method is None:
         method = "cf4" if dynamic else "euler"
     method = check_choice(

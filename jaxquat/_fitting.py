@@ -139,7 +139,20 @@ def _check_observations(times: ArrayLike, qs: ArrayLike, weights: ArrayLike | No
             f"got shape {tuple(times.shape)}."
         )
     if not is_tracer(times):
-        steps = np.diff(np.asarray(times))
+        concrete = np.asarray(times)
+        if not np.all(np.isfinite(concrete)):
+            first = int(np.argmin(np.isfinite(concrete)))
+            raise ValueError(
+                f"`times` must be finite; times[{first}] = {float(concrete[first])!r}."
+            )
+        with np.errstate(over="ignore"):
+            span = concrete[-1] - concrete[0]
+        if not np.isfinite(span):
+            raise ValueError(
+                f"`times` span {float(concrete[0])!r} … {float(concrete[-1])!r}, which overflows "
+                f"{concrete.dtype}; shift them to a nearer origin."
+            )
+        steps = np.diff(concrete)
         if not np.all(steps > 0):
             first = int(np.argmin(steps > 0))
             raise ValueError(
@@ -157,10 +170,37 @@ def _check_observations(times: ArrayLike, qs: ArrayLike, weights: ArrayLike | No
                 f"`weights` must have shape ({num_obs},) to match `qs` {tuple(qs.shape)}; "
                 f"got shape {tuple(weights.shape)}."
             )
+        if not is_tracer(weights) and not np.all(np.isfinite(np.asarray(weights))):
+            raise ValueError(f"`weights` must be finite; got {np.asarray(weights)}.")
         if not is_tracer(weights) and np.any(np.asarray(weights) < 0):
             raise ValueError(f"`weights` must be non-negative; got minimum {np.min(weights)}.")
         sqrt_weights = jnp.sqrt(weights.astype(dtype))
-    return times, normalize(qs), sqrt_weights
+    if not is_tracer(qs):
+        _check_normalisable(np.asarray(qs), "qs")
+    # Scale each row by its largest component before normalising: |q|² neither overflows (1e160) nor
+    # underflows (1e-170) then, and q/|q| is unchanged.
+    scale = jnp.max(jnp.abs(qs), axis=-1, keepdims=True)
+    return times, normalize(qs / scale), sqrt_weights
+
+
+def _check_normalisable(qs: np.ndarray, name: str) -> None:
+    """Raise a `ValueError` naming the first row of `qs` `(T, 4)` that has no direction to normalise."""
+    largest = np.max(np.abs(qs), axis=-1)
+    finite = np.all(np.isfinite(qs), axis=-1)
+    tiny = np.finfo(qs.dtype).tiny
+    for row in range(qs.shape[0]):
+        if not finite[row]:
+            problem = "is not finite"
+        elif largest[row] == 0:
+            problem = "is zero"
+        elif largest[row] < tiny:
+            problem = (
+                f"is too small to normalise accurately (largest component {float(largest[row])!r} is "
+                f"subnormal in {qs.dtype})"
+            )
+        else:
+            continue
+        raise ValueError(f"`{name}[{row}]` {problem}: {qs[row].tolist()}.")
 
 
 def _check_count(value, name: str, minimum: int) -> int:
@@ -180,7 +220,21 @@ def _interval_rates(times: Array, qs: Array, frame: str) -> tuple[Array, Array]:
     return angular_velocity(qs, jnp.diff(tau), frame=frame), tau
 
 
+def _check_solver(solver):
+    if solver is None or isinstance(
+        solver, (optx.AbstractLeastSquaresSolver, optx.AbstractMinimiser)
+    ):
+        return solver
+    raise ValueError(
+        "`solver` must be None (the default Levenberg–Marquardt) or an optimistix least-squares solver "
+        "or minimiser instance, e.g. optimistix.LevenbergMarquardt(rtol=1e-6, atol=1e-6), "
+        "optimistix.GaussNewton(...), optimistix.Dogleg(...), optimistix.IndirectLevenbergMarquardt(...) "
+        f"or optimistix.BFGS(...); got {solver!r}."
+    )
+
+
 def _solver_options(solver, dtype, max_steps, polish) -> dict:
+    solver = _check_solver(solver)
     return dict(
         solver=_default_solver(dtype) if solver is None else solver,
         max_steps=_check_count(max_steps, "max_steps", 1),
@@ -358,11 +412,14 @@ def _check_knots(knots, times: Array, model: str, num_obs: int) -> Array:
     minimum = 4 if model == "spline" else 2
     if knots is None:
         knots = max(minimum, min(20, num_obs // 4))
+    if isinstance(knots, (bool, np.bool_)):
+        raise ValueError(f"`knots` must be an int or knot times (K,); got {knots!r}.")
     if isinstance(knots, (int, np.integer)):
         if knots < minimum:
             raise ValueError(
                 f"`knots` must be at least {minimum} for model={model!r}; got {knots}."
             )
+        _check_determined(int(knots), model, num_obs)
         return jnp.linspace(times[0], times[-1], int(knots), dtype=times.dtype)
     knots = as_float_array(knots, "knots")
     if knots.ndim != 1 or knots.shape[0] < minimum:
@@ -370,9 +427,33 @@ def _check_knots(knots, times: Array, model: str, num_obs: int) -> Array:
             f"`knots` must be an int or knot times of shape (K,) with K >= {minimum} for "
             f"model={model!r}; got shape {tuple(knots.shape)}."
         )
-    if not is_tracer(knots) and not np.all(np.diff(np.asarray(knots)) > 0):
-        raise ValueError(f"`knots` must be strictly increasing; got {np.asarray(knots)}.")
+    if not is_tracer(knots):
+        if not np.all(np.isfinite(np.asarray(knots))):
+            raise ValueError(f"`knots` must be finite; got {np.asarray(knots)}.")
+        if not np.all(np.diff(np.asarray(knots)) > 0):
+            raise ValueError(f"`knots` must be strictly increasing; got {np.asarray(knots)}.")
+    _check_determined(knots.shape[0], model, num_obs)
     return knots
+
+
+def _check_determined(num_knots: int, model: str, num_obs: int) -> None:
+    """K knots are 3K unknowns (plus 3 for q0); T observations give 3T equations: need K <= T - 1.
+
+    Equivalently, the T - 1 relative rotations between neighbouring observations (3 degrees of
+    freedom each) must determine the 3K knot values. More knots leave ω(t) undetermined: the solver
+    reports convergence to one of infinitely many minima.
+    """
+    if num_knots > num_obs - 1:
+        minimum = 4 if model == "spline" else 2
+        if num_obs - 1 < minimum:
+            hint = f"model={model!r} needs at least {minimum} knots, so at least {minimum + 1} observations"
+        else:
+            hint = f"use knots <= {num_obs - 1} or more observations"
+        raise ValueError(
+            f"`knots`: {num_knots} knots are too many for {num_obs} observations with "
+            f"model={model!r}: the {num_obs - 1} rotations between neighbouring observations "
+            f"determine at most {num_obs - 1} knots (3 unknowns each); {hint}."
+        )
 
 
 # --------------------------------------------------------------------------------------------------
@@ -423,7 +504,8 @@ def fit_angular_velocity(
     - `qs`: observed orientations, shape `(T, 4)`; may mix q and −q; normalised on input.
     - `model`: `"constant"`, `"piecewise_linear"` or `"spline"`.
     - `knots`: time-varying models only: the number K of uniformly spaced knots on
-      `[times[0], times[-1]]`, or the knot times `(K,)`; K ≥ 2 (piecewise linear) or ≥ 4 (spline).
+      `[times[0], times[-1]]`, or the knot times `(K,)`; K ≥ 2 (piecewise linear) or ≥ 4 (spline),
+      and K ≤ T − 1 (the T − 1 rotations between neighbouring observations determine 3 unknowns each).
       Default: `max(minimum, min(20, T // 4))`.
     - `frame`: `"world"` or `"body"` (the frame ω is expressed in).
     - `weights`: optional non-negative per-observation weights `(T,)` (e.g. 1/σₖ²).
@@ -441,8 +523,9 @@ def fit_angular_velocity(
     Outputs have the dtype of `qs` (float32 in, float32 out).
 
     **Errors:** a `ValueError` at trace time for fewer than 3 observations, mismatched shapes of
-    `times`, `qs`, `weights`, `omega0`, bad `knots`, `model` or `frame`, and — when `times` is concrete
-    (not under `jit`/`vmap`) — non-increasing times.
+    `times`, `qs`, `weights`, `omega0`, bad `knots` (including more knots than the data determine,
+    K > T − 1), `model`, `frame` or `solver`, and — when the data are concrete (not under
+    `jit`/`vmap`) — non-finite or non-increasing times and zero, non-finite or subnormal rows of `qs`.
 
     **Batches:** `jax.vmap(fit_angular_velocity)(times, qs)` fits many independent bodies in one
     compiled call (`qs` of shape `(B, T, 4)`); every field of the result gains the leading axis B.

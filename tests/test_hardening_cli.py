@@ -1,0 +1,430 @@
+"""Regression tests for input handling of the command line, the fitting module and the ensemble files.
+
+The command line reports every bad input in one line `jaxquat: error: ...` with exit status 2 (never a
+traceback, never exit 0 with NaN or otherwise wrong results); the library raises a `ValueError` naming
+the argument and what was expected.
+"""
+
+import json
+import types
+
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+
+import jaxquat
+from jaxquat import _bench, load_ensemble, simulate_ensemble
+from jaxquat._cli import main
+
+OMEGA = np.array([0.4, -0.25, 0.7])
+
+
+def _observations(count=40):
+    """Exact orientations of a body turning at the constant rate OMEGA (world frame)."""
+    times = np.linspace(0.0, 6.0, count)
+    q_start = jaxquat.from_rotvec(jnp.array([0.3, -1.2, 0.5]))
+    return times, np.array(jaxquat.multiply(jaxquat.from_rotvec(times[:, None] * OMEGA), q_start))
+
+
+def _csv_lines(times, qs):
+    return [",".join(repr(float(v)) for v in (t, *q)) for t, q in zip(times, qs, strict=True)]
+
+
+def _write(path, lines, header=True):
+    path.write_text("\n".join((["t,w,x,y,z"] if header else []) + list(lines)) + "\n")
+    return path
+
+
+def _run(argv, capsys):
+    status = main([str(a) for a in argv])
+    captured = capsys.readouterr()
+    return status, captured.out, captured.err
+
+
+def _assert_one_line_error(status, out, err, *fragments):
+    assert status == 2, (status, out, err)
+    assert err.endswith("\n") and err.count("\n") == 1, repr(err)
+    assert "Traceback" not in err and "internal error" not in err, err
+    for fragment in fragments:
+        assert fragment in err, (fragment, err)
+    assert out == "", out
+
+
+def _simulate(tmp_path, *options):
+    return [
+        "simulate",
+        "--bodies",
+        "4",
+        "--steps",
+        "3",
+        "--no-progress",
+        "--output",
+        tmp_path / "run",
+        *options,
+    ]
+
+
+# --- 1. values overflowing the working dtype; non-finite results -----------------------------------
+
+
+@pytest.mark.parametrize(
+    "options, fragments",
+    [
+        (["--omega-scale", "1e39"], ["--omega-scale", "overflows float32"]),
+        (["--dt", "1e39"], ["--dt", "overflows float32"]),
+        (["--omega-mean", "0,0,-1e39"], ["--omega-mean", "overflows float32"]),
+        (["--inertia", "1,2,1e39"], ["--inertia", "overflows float32"]),
+        (["--dt", "1e-50"], ["--dt", "underflows float32"]),
+    ],
+)
+def test_simulate_rejects_values_the_dtype_cannot_hold(tmp_path, capsys, options, fragments):
+    status, out, err = _run(_simulate(tmp_path, *options), capsys)
+    _assert_one_line_error(status, out, err, *fragments)
+
+
+def test_simulate_toml_value_overflowing_float32_names_the_file(tmp_path, capsys):
+    config = tmp_path / "run.toml"
+    config.write_text("bodies = 4\nsteps = 3\ndt = 1e39\n")
+    status, out, err = _run(["simulate", "--config", config, "--no-progress"], capsys)
+    _assert_one_line_error(status, out, err, "run.toml line 3", "dt", "overflows float32")
+
+
+@pytest.mark.parametrize(
+    "options", [["--omega-scale", "1e38"], ["--dt", "1e30", "--omega-scale", "1e10"]]
+)
+def test_simulate_with_non_finite_results_is_an_error_not_a_summary(tmp_path, capsys, options):
+    # Every value is representable in float32, but the run overflows: no summary, exit 2.
+    status, out, err = _run(_simulate(tmp_path, *options), capsys)
+    _assert_one_line_error(status, out, err, "not finite", "float32")
+
+
+def test_demo_with_non_finite_results_is_an_error(tmp_path, capsys, monkeypatch):
+    def nan_fit(seed):
+        fit = types.SimpleNamespace(
+            omega=np.full(3, np.nan), residual_angles=np.full(5, np.nan), converged=False
+        )
+        return np.linspace(0.0, 1.0, 5), np.array(OMEGA), fit
+
+    monkeypatch.setattr("jaxquat._cli._demo_fit", nan_fit)
+    png = tmp_path / "demo.png"
+    argv = ["demo", "--bodies", "8", "--steps", "4", "--no-progress", "--output", png]
+    status = main([str(a) for a in argv])
+    captured = capsys.readouterr()
+    assert status == 2, captured
+    assert captured.err.count("\n") == 1 and "not finite" in captured.err
+    assert not png.exists()
+
+
+# --- 2. underdetermined time-varying fits ----------------------------------------------------------
+
+
+def test_fit_rejects_more_knots_than_the_observations_determine():
+    times, qs = _observations(40)
+    with pytest.raises(ValueError, match="`knots`.*spline.*at least 5 observations"):
+        jaxquat.fit_angular_velocity(times[:3], qs[:3], model="spline")  # default 4 knots
+    for model in ("piecewise_linear", "spline"):
+        with pytest.raises(ValueError, match=r"`knots`: 1000 knots .* knots <= 39"):
+            jaxquat.fit_angular_velocity(times, qs, model=model, knots=1000)
+        with pytest.raises(ValueError, match=r"`knots`: 6 knots are too many for 6"):
+            jaxquat.fit_angular_velocity(times[:6], qs[:6], model=model, knots=6)
+        with pytest.raises(ValueError, match=r"`knots`: 6 knots are too many for 6"):
+            jaxquat.fit_angular_velocity(
+                times[:6], qs[:6], model=model, knots=np.linspace(0.0, times[5], 6)
+            )
+    # K = T - 1 is exactly determined: the fit recovers ω.
+    fit = jaxquat.fit_angular_velocity(times[:6], qs[:6], model="piecewise_linear", knots=5)
+    np.testing.assert_allclose(np.asarray(fit.omega.values), np.tile(OMEGA, (5, 1)), atol=1e-8)
+
+
+def test_cli_fit_with_too_many_knots_is_a_one_line_error(tmp_path, capsys):
+    times, qs = _observations(40)
+    three = _write(tmp_path / "three.csv", _csv_lines(times[:3], qs[:3]))
+    status, out, err = _run(["fit", three, "--model", "spline"], capsys)
+    _assert_one_line_error(status, out, err, "knots", "3 observations")
+    full = _write(tmp_path / "full.csv", _csv_lines(times, qs))
+    status, out, err = _run(["fit", full, "--model", "spline", "--knots", "1000"], capsys)
+    _assert_one_line_error(status, out, err, "knots", "1000")
+
+
+# --- 3. quaternion scales, non-finite times, JSON without NaN -----------------------------------
+
+
+@pytest.mark.parametrize("scale", [1e160, 1e-170])
+def test_fit_normalises_quaternions_of_extreme_scale(tmp_path, capsys, scale):
+    times, qs = _observations(40)
+    fit = jaxquat.fit_angular_velocity(times, qs * scale)
+    np.testing.assert_allclose(np.asarray(fit.omega), OMEGA, atol=1e-8)
+    path = _write(tmp_path / "scaled.csv", _csv_lines(times, qs * scale))
+    status, out, err = _run(["fit", path, "--json"], capsys)
+    assert status == 0, err
+    report = json.loads(out)  # strict: NaN would be invalid JSON here
+    np.testing.assert_allclose(report["omega"], OMEGA, atol=1e-8)
+
+
+def test_subnormal_quaternions_are_rejected_naming_the_row(tmp_path, capsys):
+    times, qs = _observations(10)
+    with pytest.raises(ValueError, match=r"`qs\[0\]` is too small"):
+        jaxquat.fit_angular_velocity(times, qs * 1e-320)
+    path = _write(tmp_path / "tiny.csv", _csv_lines(times, qs * 1e-320))
+    status, out, err = _run(["fit", path, "--json"], capsys)
+    _assert_one_line_error(status, out, err, "tiny.csv line 2", "too small")
+
+
+@pytest.mark.parametrize("bad", [np.inf, -np.inf, np.nan])
+def test_fit_rejects_non_finite_times_and_weights(bad):
+    times, qs = _observations(10)
+    times = times.copy()
+    times[-1] = bad
+    with pytest.raises(ValueError, match=r"`times` must be finite; times\[9\]"):
+        jaxquat.fit_angular_velocity(times, qs)
+    with pytest.raises(ValueError, match=r"`times` must be finite"):
+        jaxquat.fit_rigid_body(times, qs)
+    weights = np.ones(10)
+    weights[3] = bad
+    with pytest.raises(ValueError, match="`weights` must be finite"):
+        jaxquat.fit_angular_velocity(np.linspace(0.0, 1.0, 10), qs, weights=weights)
+
+
+def test_fit_rejects_times_whose_span_overflows():
+    _, qs = _observations(3)
+    with pytest.raises(ValueError, match="`times` span"):
+        jaxquat.fit_angular_velocity(np.array([-1.5e308, 0.0, 1.5e308]), qs)
+
+
+def test_cli_fit_never_prints_nan(tmp_path, capsys, monkeypatch):
+    times, qs = _observations(10)
+    path = _write(tmp_path / "obs.csv", _csv_lines(times, qs))
+
+    def nan_fit(times, qs, **kwargs):
+        nan = np.full(3, np.nan)
+        return types.SimpleNamespace(
+            omega=nan, q0=np.full(4, np.nan), residual_angles=np.full(10, np.nan), converged=True
+        )
+
+    monkeypatch.setattr("jaxquat._fitting.fit_angular_velocity", nan_fit)
+    for extra in (["--json"], []):
+        status, out, err = _run(["fit", path, *extra], capsys)
+        _assert_one_line_error(status, out, err, "not finite", "obs.csv")
+
+
+# --- 4. load_ensemble and simulate_ensemble arguments --------------------------------------------
+
+
+@pytest.fixture
+def run(tmp_path):
+    path = tmp_path / "run"
+    simulate_ensemble(
+        np.tile([1.0, 0, 0, 0], (5, 1)),
+        np.ones((5, 3)),
+        0.1,
+        6,
+        save_every=2,
+        chunk_size=2,
+        statistics=True,
+        path=path,
+    )
+    assert load_ensemble(path)["final"].shape == (5, 4)
+    return path
+
+
+def _edit_index(run, **changes):
+    index = json.loads((run / "index.json").read_text())
+    index.update(changes)
+    (run / "index.json").write_text(json.dumps(index))
+    return index
+
+
+@pytest.mark.parametrize(
+    "name, array, fragment",
+    [
+        ("final.npy", np.zeros((4, 4)), r"final.npy \(final\) holds float64\[4, 4\]"),
+        ("final.npy", np.zeros((5, 4), np.float32), r"final.npy \(final\) holds float32"),
+        ("total_angle.npy", np.zeros((5, 1)), r"total_angle.npy \(total_angle\) holds"),
+        ("final_omega.npy", np.zeros((5, 4)), r"final_omega.npy \(final_omega\) holds"),
+    ],
+)
+def test_load_ensemble_checks_the_final_arrays(run, name, array, fragment):
+    np.save(run / name, array)
+    with pytest.raises(ValueError, match=fragment):
+        load_ensemble(run)
+
+
+@pytest.mark.parametrize(
+    "changes, fragment",
+    [
+        ({"complete": "false"}, "complete must be true or false"),
+        ({"complete": 1}, "complete must be true or false"),
+        ({"dt": float("nan")}, "dt must be a finite number"),
+        ({"dt": "0.1"}, "dt must be a finite number"),
+        ({"t0": float("inf")}, "t0 must be a finite number"),
+        ({"num_steps": -6}, "num_steps must be an integer >= 0"),
+        ({"steps_done": -1}, "steps_done must be an integer >= 0"),
+        ({"steps_done": 7}, "steps_done 7 exceeds num_steps 6"),
+        ({"save_every": 0}, "save_every must be an integer >= 1"),
+        ({"batch_shape": [-5]}, "batch_shape must be a list of non-negative integers"),
+        ({"batch_shape": ["5"]}, "batch_shape must be a list of non-negative integers"),
+        ({"dtype": "int8"}, "dtype must name a float dtype"),
+        ({"final": {"final": "final.npy", "bogus": "final.npy"}}, "unknown final array"),
+    ],
+)
+def test_load_ensemble_validates_the_index(run, changes, fragment):
+    _edit_index(run, **changes)
+    with pytest.raises(ValueError, match=fragment):
+        load_ensemble(run)
+
+
+def test_load_ensemble_rejects_negative_saved_steps(run):
+    index = json.loads((run / "index.json").read_text())
+    index["records"][1]["steps"] = [-2]
+    (run / "index.json").write_text(json.dumps(index))
+    with pytest.raises(ValueError, match="saved steps must be non-negative"):
+        load_ensemble(run)
+
+
+@pytest.mark.parametrize("where", ["record", "final"])
+@pytest.mark.parametrize("kind", ["parent", "absolute"])
+def test_load_ensemble_reads_nothing_outside_its_directory(run, tmp_path, where, kind):
+    index = json.loads((run / "index.json").read_text())
+    inside = run / (index["records"][1]["files"]["states"] if where == "record" else "final.npy")
+    outside = tmp_path / "outside.npy"
+    outside.write_bytes(inside.read_bytes())  # a valid array, so only the name is wrong
+    name = "../outside.npy" if kind == "parent" else str(outside)
+    if where == "record":
+        index["records"][1]["files"]["states"] = name
+    else:
+        index["final"]["final"] = name
+    (run / "index.json").write_text(json.dumps(index))
+    with pytest.raises(ValueError, match="expected a plain .npy file name"):
+        load_ensemble(run)
+
+
+@pytest.mark.parametrize("path", [None, 3, ""])
+def test_load_ensemble_path_argument(path):
+    with pytest.raises(ValueError, match="`path`"):
+        load_ensemble(path)
+
+
+@pytest.mark.parametrize("t0", ["a", None, [0.0, 1.0], 1 + 2j, float("nan")])
+def test_simulate_ensemble_rejects_bad_t0(t0):
+    with pytest.raises(ValueError, match="`t0`"):
+        simulate_ensemble(np.array([[1.0, 0, 0, 0]]), np.ones((1, 3)), 0.1, 2, t0=t0)
+
+
+def test_simulate_ensemble_rejects_non_finite_dt():
+    with pytest.raises(ValueError, match="`dt` must be finite"):
+        simulate_ensemble(np.array([[1.0, 0, 0, 0]]), np.ones((1, 3)), float("inf"), 2)
+
+
+# --- 5. bench arguments --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "argv, fragments",
+    [
+        (["--sizes", "a,b"], ["--sizes", "'a,b'"]),
+        (["--repeats", "0"], ["--repeats", "positive"]),
+        (["--repeats", "-3"], ["--repeats", "positive"]),
+        (["--w5-sizes", "0"], ["--w5-sizes", "positive"]),
+        (["--w5-sizes", "-2"], ["--w5-sizes"]),
+        (["--steps", "x"], ["--steps"]),
+        (["--budget", "nan"], ["--budget"]),
+        (["--preset", "huge"], ["--preset", "invalid choice"]),
+        (["--bogus"], ["unrecognized arguments"]),
+    ],
+)
+def test_bench_argument_errors_are_one_line(argv, fragments, tmp_path, capsys, monkeypatch):
+    def must_not_run():
+        raise AssertionError("the suite started despite a bad argument")
+
+    monkeypatch.setattr(_bench, "describe_machine", must_not_run)
+    status, out, err = _run(["bench", "--no-huge-pages", "--output", tmp_path, *argv], capsys)
+    _assert_one_line_error(status, out, err, "jaxquat bench: error:", *fragments)
+
+
+# --- 6. solver names -----------------------------------------------------------------------------
+
+
+def test_fit_solver_must_be_an_optimistix_solver():
+    times, qs = _observations(10)
+    with pytest.raises(ValueError, match="`solver`.*LevenbergMarquardt.*GaussNewton.*'lm'"):
+        jaxquat.fit_angular_velocity(times, qs, solver="lm")
+    with pytest.raises(ValueError, match="`solver`"):
+        jaxquat.fit_rigid_body(times, qs, solver="lm")
+    fit = jaxquat.fit_angular_velocity(times, qs, solver=optx.Dogleg(rtol=1e-8, atol=1e-8))
+    np.testing.assert_allclose(np.asarray(fit.omega), OMEGA, atol=1e-6)
+
+
+# --- 7. command-line details ---------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", ["99999999999999999999999", "-1", "4294967296", "1_0", "x"])
+@pytest.mark.parametrize("command", ["simulate", "demo"])
+def test_seed_out_of_range_is_a_one_line_error(tmp_path, capsys, seed, command):
+    status, out, err = _run(
+        [command, "--seed", seed, "--no-progress", "--output", tmp_path / "x.png"], capsys
+    )
+    _assert_one_line_error(status, out, err, "--seed")
+
+
+def test_empty_output_names_the_option(tmp_path, capsys):
+    status, out, err = _run(_simulate(tmp_path)[:-2] + ["--output", ""], capsys)
+    _assert_one_line_error(status, out, err, "--output", "''")
+    status, out, err = _run(["demo", "--output", ""], capsys)
+    _assert_one_line_error(status, out, err, "--output", "''")
+
+
+@pytest.mark.parametrize(
+    "line, fragments",
+    [
+        ('dt = "0.1"', ["line 2", "dt", "number"]),
+        ('omega_scale = "1"', ["line 2", "omega_scale"]),
+        ('omega_mean = ["0.1", 0, 0]', ["line 2", "omega_mean"]),
+        ('inertia = [1, "2", 3]', ["line 2", "inertia"]),
+        ('bodies = "4"', ["line 2", "bodies"]),
+        ("seed = 99999999999999999", ["line 2", "seed"]),
+        ('frame = "sideways"', ["line 2", "frame", "sideways"]),
+        ('dtype = "float16"', ["line 2", "dtype", "float16"]),
+        ('method = "heun"', ["line 2", "method", "heun"]),
+        ('output = ""', ["line 2", "output"]),
+    ],
+)
+def test_toml_values_are_checked_and_errors_name_the_file(tmp_path, capsys, line, fragments):
+    config = tmp_path / "conf.toml"
+    config.write_text(f"steps = 2\n{line}\n")
+    status, out, err = _run(
+        ["simulate", "--config", config, "--no-progress", "--output", tmp_path / "run"], capsys
+    )
+    _assert_one_line_error(status, out, err, "conf.toml", *fragments)
+
+
+def test_toml_method_invalid_for_rigid_bodies_names_the_file(tmp_path, capsys):
+    config = tmp_path / "rigid.toml"
+    config.write_text('bodies = 3\nsteps = 2\ninertia = [1, 2, 3]\nmethod = "magnus4"\n')
+    status, out, err = _run(
+        ["simulate", "--config", config, "--no-progress", "--output", tmp_path / "run"], capsys
+    )
+    _assert_one_line_error(status, out, err, "rigid.toml line 4", "magnus4")
+
+
+@pytest.mark.parametrize("field", ["1_0", "١", "0x1", "1e"])
+def test_csv_numbers_are_plain_decimals(tmp_path, capsys, field):
+    times, qs = _observations(6)
+    lines = _csv_lines(times, qs)
+    lines[2] = ",".join([field, *lines[2].split(",")[1:]])
+    path = _write(tmp_path / "odd.csv", lines)
+    status, out, err = _run(["fit", path], capsys)
+    _assert_one_line_error(status, out, err, "line 4", "column t", "not a number")
+
+
+@pytest.mark.parametrize("typo", ["0.O", "abc", "1..0"])
+def test_typo_in_the_first_data_row_is_a_data_error(tmp_path, capsys, typo):
+    times, qs = _observations(6)
+    lines = _csv_lines(times, qs)
+    fields = lines[0].split(",")
+    fields[3] = typo
+    lines[0] = ",".join(fields)
+    path = _write(tmp_path / "typo.csv", lines, header=False)
+    status, out, err = _run(["fit", path], capsys)
+    _assert_one_line_error(status, out, err, "line 1", "column y", repr(typo))
+    assert "header" not in err
