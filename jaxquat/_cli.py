@@ -950,5 +950,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as e:  # --help / --version
         return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
     except BaseException as e:  # noqa: BLE001 (the contract: one line, never a traceback)
+        if _out_of_memory(e):  # the machine's limit, reached by the arguments: not a bug
+            print(
+                f"{_PROG}: error: out of memory ({_one_line(e)}); use fewer --bodies, a smaller "
+                "--chunk-size or a larger --save-every",
+                file=sys.stderr,
+            )
+            return 2
         print(f"{_PROG}: internal error: {type(e).__name__}: {_one_line(e)}", file=sys.stderr)
         return 1
+
+
+def _out_of_memory(error: BaseException) -> bool:
+    """Whether `error` is an allocation failure: NumPy's `MemoryError` or XLA's out-of-memory."""
+    if isinstance(error, MemoryError):
+        return True
+    text = str(error)
+    return type(error).__name__.endswith("RuntimeError") and (
+        "Out of memory" in text or "RESOURCE_EXHAUSTED" in text
+    )

@@ -428,3 +428,37 @@ def test_typo_in_the_first_data_row_is_a_data_error(tmp_path, capsys, typo):
     status, out, err = _run(["fit", path], capsys)
     _assert_one_line_error(status, out, err, "line 1", "column y", repr(typo))
     assert "header" not in err
+
+
+class JaxRuntimeError(RuntimeError):
+    """Stands in for `jax.errors.JaxRuntimeError` (matched by name, as XLA raises it)."""
+
+
+@pytest.mark.parametrize(
+    "error",
+    [
+        MemoryError("Unable to allocate 1.2 TiB for an array"),
+        JaxRuntimeError("INTERNAL: Out of memory allocating 1200000000000 bytes."),
+        JaxRuntimeError("RESOURCE_EXHAUSTED: failed to allocate"),
+    ],
+    ids=["numpy", "xla-internal", "xla-resource-exhausted"],
+)
+def test_out_of_memory_is_a_one_line_user_error(tmp_path, capsys, monkeypatch, error):
+    # Arguments too large for the machine are the user's to change (exit 2, one line naming the
+    # options), not an internal error; any other unexpected exception still is (exit 1).
+    def fail(*args, **kwargs):
+        raise error
+
+    monkeypatch.setattr("jaxquat._ensemble.simulate_ensemble", fail)
+    status, out, err = _run(_simulate(tmp_path), capsys)
+    _assert_one_line_error(status, out, err, "out of memory", "--bodies", "--chunk-size")
+
+
+def test_unexpected_runtime_error_is_still_internal(tmp_path, capsys, monkeypatch):
+    def fail(*args, **kwargs):
+        raise JaxRuntimeError("INTERNAL: something else broke")
+
+    monkeypatch.setattr("jaxquat._ensemble.simulate_ensemble", fail)
+    status, out, err = _run(_simulate(tmp_path), capsys)
+    assert status == 1 and err.count("\n") == 1 and "internal error" in err, (status, err)
+    assert "Traceback" not in err
