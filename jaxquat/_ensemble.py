@@ -594,6 +594,10 @@ def _read_ensemble(path: str, index_path: str) -> dict[str, Any]:
 # The public entry point
 
 
+# The largest step count: step indices are int32 on the device.
+_MAX_STEPS = 2**31 - 1
+
+
 def _check_positive_int(value, name: str, *, allow_zero: bool = False) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
         raise ValueError(f"`{name}` must be an integer; got {value!r}.")
@@ -695,7 +699,7 @@ def simulate_ensemble(
     - `q0`: initial orientations `(..., 4)` (unit).
     - `omega`: angular velocities `(..., 3)` in rad/s (leading axes broadcast with `q0`), or for a
       kinematic ensemble a callable `omega(t, q) -> (..., 3)`.
-    - `dt`: the time step (a scalar). `num_steps`: the number of steps (≥ 0).
+    - `dt`: the time step (a scalar). `num_steps`: the number of steps, 0 … 2³¹ − 1.
     - `inertia`: `None` (kinematic), or principal moments `(3,)` / matrices `(3, 3)`, shared or per
       body `(..., 3)` / `(..., 3, 3)`.
     - `torque`: optional `torque(t, q, omega)` for rigid bodies (see `simulate_rigid_body`).
@@ -730,6 +734,9 @@ def simulate_ensemble(
     dynamic = inertia is not None
     frame = check_frame(("body" if dynamic else "world") if frame is None else frame)
     num_steps = _check_positive_int(num_steps, "num_steps", allow_zero=True)
+    if num_steps > _MAX_STEPS:
+        # Step indices are int32 on the device (t = t0 + k·dt is formed from them).
+        raise ValueError(f"`num_steps` must be at most 2**31 - 1 = {_MAX_STEPS}; got {num_steps}.")
     if save_every is not None:
         save_every = _check_positive_int(save_every, "save_every")
     if chunk_size is not None:

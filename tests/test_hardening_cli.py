@@ -305,6 +305,16 @@ def test_load_ensemble_path_argument(path):
         load_ensemble(path)
 
 
+def test_simulate_ensemble_rejects_step_counts_beyond_int32(tmp_path, capsys):
+    # Step indices are int32 on the device: 2**31 steps would wrap to negative times, silently.
+    with pytest.raises(ValueError, match=r"`num_steps` must be at most 2\*\*31 - 1"):
+        simulate_ensemble(np.tile([1.0, 0, 0, 0], (2, 1)), np.ones((2, 3)), 0.1, 2**31)
+    argv = _simulate(tmp_path)
+    argv[argv.index("--steps") + 1] = str(2**31)
+    status, out, err = _run(argv, capsys)
+    _assert_one_line_error(status, out, err, "num_steps", "2147483647")
+
+
 @pytest.mark.parametrize("t0", ["a", None, [0.0, 1.0], 1 + 2j, float("nan")])
 def test_simulate_ensemble_rejects_bad_t0(t0):
     with pytest.raises(ValueError, match="`t0`"):
