@@ -1642,7 +1642,7 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--budget",
         type=_positive_seconds,
-        help="seconds one peer call may take before it runs fewer steps",
+        help="seconds one peer call may take before it runs fewer steps (W2 included)",
     )
     parser.add_argument("--quiet", action="store_true", help="print only the final table")
     parser.add_argument(
@@ -1687,6 +1687,7 @@ def main(argv: list[str] | None = None) -> int:
             changes["w5_sizes"] = args.w5_sizes
         if args.budget is not None:
             changes["budget"] = args.budget
+            changes["w2_budget"] = None  # the user's budget holds for W2 too
         if args.steps is not None:
             changes["num_steps"] = args.steps
         if args.repeats is not None:

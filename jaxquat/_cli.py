@@ -117,7 +117,8 @@ def _vector3(text: str) -> list[float]:
     parts = text.split(",") if isinstance(text, str) else text
     if len(parts) != 3:
         raise argparse.ArgumentTypeError(f"must be three comma-separated numbers, got {text!r}")
-    return [_finite_float(p) for p in parts]
+    # `--omega-mean "0, 0, 1"`: spaces after the commas are fine.
+    return [_finite_float(p.strip() if isinstance(p, str) else p) for p in parts]
 
 
 def _inertia(text: str) -> list[float]:

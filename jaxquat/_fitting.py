@@ -187,7 +187,7 @@ def _check_normalisable(qs: np.ndarray, name: str) -> None:
     """Raise a `ValueError` naming the first row of `qs` `(T, 4)` that has no direction to normalise."""
     largest = np.max(np.abs(qs), axis=-1)
     finite = np.all(np.isfinite(qs), axis=-1)
-    tiny = np.finfo(qs.dtype).tiny
+    tiny = float(jnp.finfo(qs.dtype).tiny)  # jnp: also bfloat16
     for row in range(qs.shape[0]):
         if not finite[row]:
             problem = "is not finite"
@@ -522,7 +522,8 @@ def fit_angular_velocity(
     `AngularVelocityCurve`), `.q0`, `.residual_angles`, `.loss`, `.num_steps`, `.converged`.
     Outputs have the dtype of `qs` (float32 in, float32 out).
 
-    **Errors:** a `ValueError` at trace time for fewer than 3 observations, mismatched shapes of
+    **Errors:** a `ValueError` at trace time for fewer than 3 observations (5 for
+    `model="spline"`, whose 4 knots need 4 relative rotations), mismatched shapes of
     `times`, `qs`, `weights`, `omega0`, bad `knots` (including more knots than the data determine,
     K > T − 1), `model`, `frame` or `solver`, and — when the data are concrete (not under
     `jit`/`vmap`) — non-finite or non-increasing times and zero, non-finite or subnormal rows of `qs`.

@@ -154,3 +154,12 @@ def test_bad_arguments_exit_with_an_error_code(tmp_path, capsys):
     assert _bench.main(["--preset", "nope", "--output", str(tmp_path)]) == 2
     assert _bench.main(["--workloads", "W9", "--output", str(tmp_path)]) == 2
     assert "W9" in capsys.readouterr().err
+
+
+def test_user_budget_also_holds_for_w2(tmp_path):
+    # The quick preset lets W2 peers run all T steps within 2 s; an explicit --budget replaces that.
+    argv = ["--workloads", "W1", "--sizes", "3", "--steps", "4", "--repeats", "1", "--quiet"]
+    assert _bench.PRESETS["quick"].w2_budget == 2.0
+    assert _bench.main([*argv, "--budget", "0.5", "--output", str(tmp_path)]) == 0
+    config = json.loads((tmp_path / "results.json").read_text())["config"]
+    assert config["budget"] == 0.5 and config["w2_budget"] is None

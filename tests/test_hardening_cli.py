@@ -472,3 +472,19 @@ def test_unexpected_runtime_error_is_still_internal(tmp_path, capsys, monkeypatc
     status, out, err = _run(_simulate(tmp_path), capsys)
     assert status == 1 and err.count("\n") == 1 and "internal error" in err, (status, err)
     assert "Traceback" not in err
+
+
+def test_vectors_accept_spaces_after_commas():
+    from jaxquat._cli import _inertia, _vector3
+
+    assert _vector3("0, 0, 1") == [0.0, 0.0, 1.0]
+    assert _inertia(" 1, 2 ,3 ") == [1.0, 2.0, 3.0]
+
+
+def test_fit_accepts_bfloat16_observations():
+    # The concrete-input row check must not use np.finfo, which does not know bfloat16.
+    times = jnp.linspace(0.0, 1.0, 8)
+    qs = jaxquat.integrate(jnp.array([1.0, 0, 0, 0]), jnp.array([0.3, 0.2, 0.1]), 1 / 7, 7)
+    fit = jaxquat.fit_angular_velocity(times.astype(jnp.bfloat16), qs.astype(jnp.bfloat16))
+    assert fit.omega.dtype == jnp.bfloat16
+    np.testing.assert_allclose(np.asarray(fit.omega, np.float64), [0.3, 0.2, 0.1], atol=3e-3)
