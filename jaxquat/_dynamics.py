@@ -21,11 +21,12 @@ import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from ._algebra import conjugate
-from ._integrate import _check_count, _check_scalar, lie_step, scan_steps
+from ._integrate import _check_scalar, _check_steps, lie_step, scan_steps
 from ._kinematics import rate
 from ._numerics import (
     as_float_array,
     broadcast_batch,
+    broadcasts_to,
     check_choice,
     check_frame,
     check_matrix,
@@ -338,15 +339,7 @@ def _call_torque(torque: Callable, t, q: Array, omega: Array) -> Array:
     not add batch axes), and broadcast to it."""
     tau = as_float_array(torque(t, q, omega), "torque(t, q, omega)")
     shape = tuple(tau.shape)
-    try:
-        fits = (
-            len(shape) > 0
-            and shape[-1] == 3
-            and np.broadcast_shapes(shape, omega.shape) == tuple(omega.shape)
-        )
-    except ValueError:
-        fits = False
-    if not fits:
+    if not (len(shape) > 0 and shape[-1] == 3 and broadcasts_to(shape, omega.shape)):
         raise ValueError(
             f"`torque(t, q, omega)` must return shape (..., 3) broadcasting to the angular velocity's "
             f"shape {tuple(omega.shape)}; got shape {shape}."
@@ -441,17 +434,6 @@ def simulate_rigid_body(
     if frame == "world":
         omegas = rotate(omegas, qs)
     return qs, omegas
-
-
-def _check_steps(num_steps, save: str, save_every) -> None:
-    """`num_steps` ≥ 0 and `save_every` ≥ 1 static ints (not bools); `save_every` divides `num_steps`
-    when saving every state."""
-    num_steps = _check_count(num_steps, "num_steps", 0)
-    save_every = _check_count(save_every, "save_every", 1)
-    if save == "all" and num_steps % save_every:
-        raise ValueError(
-            f"`save_every` must divide `num_steps`; got save_every={save_every}, num_steps={num_steps}."
-        )
 
 
 class _RigidBodyVectorField(eqx.Module):

@@ -310,6 +310,18 @@ def _check_count(value, name: str, minimum: int) -> int:
     return value
 
 
+def _check_steps(num_steps, save: str, save_every) -> tuple[int, int]:
+    """`num_steps` ≥ 0 and `save_every` ≥ 1 static ints (not bools); `save_every` divides `num_steps`
+    when saving every state."""
+    num_steps = _check_count(num_steps, "num_steps", 0)
+    save_every = _check_count(save_every, "save_every", 1)
+    if save == "all" and num_steps % save_every:
+        raise ValueError(
+            f"`save_every` must divide `num_steps`; got save_every={save_every}, num_steps={num_steps}."
+        )
+    return num_steps, save_every
+
+
 def _check_flag(value, name: str, *, allow_none: bool = False) -> bool | None:
     """A static Python bool (or `None` where that means automatic); anything else is a `ValueError`."""
     if value is None and allow_none:
@@ -656,17 +668,12 @@ def integrate(
     frame = check_frame(frame)
     method = check_choice(method, METHODS, "method")
     save = check_choice(save, ("all", "final"), "save")
-    num_steps = _check_count(num_steps, "num_steps", 0)
-    save_every = _check_count(save_every, "save_every", 1)
+    num_steps, save_every = _check_steps(num_steps, save, save_every)
     unroll = _check_count(unroll, "unroll", 1)
     if renormalize_every is not None:
         renormalize_every = _check_count(renormalize_every, "renormalize_every", 1)
     compensated = _check_flag(compensated, "compensated", allow_none=True)
     checkpoint = _check_flag(checkpoint, "checkpoint")
-    if save == "all" and num_steps % save_every:
-        raise ValueError(
-            f"`save_every` must divide `num_steps`; got save_every={save_every}, num_steps={num_steps}."
-        )
     q0 = check_trailing(q0, 4, "q0")
     dt_given, t0_given = dt, t0
     dt = _check_scalar(dt, "dt")

@@ -98,6 +98,14 @@ def check_float_dtype(dtype, name: str = "dtype") -> jnp.dtype:
     return resolved
 
 
+def broadcasts_to(shape: tuple[int, ...], target: tuple[int, ...]) -> bool:
+    """Whether an array of `shape` broadcasts to `target` without adding or growing axes of it."""
+    try:
+        return np.broadcast_shapes(tuple(shape), tuple(target)) == tuple(target)
+    except ValueError:
+        return False
+
+
 def check_trailing(x: ArrayLike, size: int, name: str) -> Array:
     """Convert `x` to a float array and check that its last axis has `size` entries.
 

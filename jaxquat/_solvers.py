@@ -32,7 +32,6 @@ import diffrax
 import equinox as eqx
 import jax.numpy as jnp
 import jax.tree_util as jtu
-import numpy as np
 from jax import lax
 from jaxtyping import Array, PyTree
 
@@ -40,6 +39,7 @@ from ._algebra import conjugate, from_vector, log, multiply
 from ._integrate import _STAGE_FRACTIONS, _check_scalar, magnus6_exponent
 from ._kinematics import corrected_rate, rate
 from ._numerics import (
+    broadcasts_to,
     check_frame,
     check_trailing,
     cross,
@@ -108,11 +108,7 @@ class _KinematicField(eqx.Module):
             omega = self.omega
         omega = check_trailing(omega, 3, "omega").astype(q.dtype)
         batch = tuple(q.shape[:-1])
-        try:
-            fits = np.broadcast_shapes(omega.shape[:-1], batch) == batch
-        except ValueError:
-            fits = False
-        if not fits:
+        if not broadcasts_to(omega.shape[:-1], batch):
             raise ValueError(
                 f"`omega` must have shape (..., 3) with leading axes broadcasting to those of the "
                 f"state `q` {batch}; got shape {tuple(omega.shape)} for q of shape {tuple(q.shape)}."
