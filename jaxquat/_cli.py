@@ -554,11 +554,8 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     kwargs: dict[str, Any] = {"model": args.model, "frame": args.frame}
     if args.knots is not None:
         kwargs["knots"] = args.knots
-    # Scale each row by its largest component first: |q|² of 1e160 or 1e-170 would over/underflow.
-    scaled = quaternions / np.max(np.abs(quaternions), axis=-1, keepdims=True)
-    fit = fit_angular_velocity(
-        times, scaled / np.linalg.norm(scaled, axis=-1, keepdims=True), **kwargs
-    )
+    # Rows need not be unit: the fit scales each by its largest component and normalises it.
+    fit = fit_angular_velocity(times, quaternions, **kwargs)
     residuals = np.degrees(np.asarray(fit.residual_angles, dtype=np.float64))
     report: dict[str, Any] = {
         "model": args.model,
