@@ -433,6 +433,8 @@ def _check_knots(knots, times: Array, model: str, num_obs: int) -> Array:
         if not np.all(np.diff(np.asarray(knots)) > 0):
             raise ValueError(f"`knots` must be strictly increasing; got {np.asarray(knots)}.")
     _check_determined(knots.shape[0], model, num_obs)
+    if not is_tracer(knots) and not is_tracer(times):
+        _check_identifiable(np.asarray(knots, np.float64), np.asarray(times, np.float64), model)
     return knots
 
 
@@ -453,6 +455,57 @@ def _check_determined(num_knots: int, model: str, num_obs: int) -> None:
             f"`knots`: {num_knots} knots are too many for {num_obs} observations with "
             f"model={model!r}: the {num_obs - 1} rotations between neighbouring observations "
             f"determine at most {num_obs - 1} knots (3 unknowns each); {hint}."
+        )
+
+
+def _check_identifiable(knots: np.ndarray, times: np.ndarray, model: str) -> None:
+    """Explicit knot times: the T − 1 observation intervals must determine every knot value.
+
+    To first order in the rotation, the rotation between observations j and j + 1 is
+    ∫ ω dt = Σ_i c_i ∫ B_i dt over that interval (B_i the curve's basis functions, c_i the knot
+    values), so the knot values are determined (locally) only if the (T − 1) × K matrix
+    G_ji = ∫_(t_j)^(t_(j+1)) B_i dt has full column rank K. Counting (K ≤ T − 1, `_check_determined`)
+    is necessary, not sufficient: G loses rank when knots bunch between neighbouring observations (a
+    Schoenberg–Whitney-type condition), and the solver would then report convergence to one of
+    infinitely many minima. The integrals are exact (two-point Gauss–Legendre on the pieces between
+    knots and observation times, on each of which the basis is a cubic); the rank is that of G with
+    unit columns, to a relative 1e-8 (100 ε in float32).
+    """
+    num_knots = knots.shape[0]
+    edges = np.unique(np.concatenate([times, knots[(knots > times[0]) & (knots < times[-1])]]))
+    lo, hi = edges[:-1], edges[1:]
+    mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    nodes = np.concatenate([mid - half / np.sqrt(3.0), mid + half / np.sqrt(3.0)])
+    basis = AngularVelocityCurve.through(jnp.asarray(knots), jnp.eye(num_knots), model)
+    values = basis(jnp.asarray(nodes))  # in JAX's default float: float32 unless x64 is on
+    tolerance = max(1e-8, 100.0 * float(jnp.finfo(values.dtype).eps))
+    values = np.asarray(values, np.float64).reshape(2, -1, num_knots)
+    pieces = half[:, None] * (values[0] + values[1])  # ∫ B_i over each piece
+    interval = np.clip(np.searchsorted(times, lo, side="right") - 1, 0, times.shape[0] - 2)
+    gram = np.zeros((times.shape[0] - 1, num_knots))
+    np.add.at(gram, interval, pieces)
+    scale = np.linalg.norm(gram, axis=0)
+    singular = np.linalg.svd(gram / np.where(scale > 0, scale, 1.0), compute_uv=False)
+    rank = int(np.sum(singular > tolerance * singular[0])) if singular[0] > 0 else 0
+    if rank < num_knots:
+        inside = np.searchsorted(knots, times[1:], side="left") - np.searchsorted(
+            knots, times[:-1], side="right"
+        )
+        j = int(np.argmax(inside))
+        outside = int(np.sum((knots < times[0]) | (knots > times[-1])))
+        where = []
+        if inside[j] >= 2:
+            where.append(
+                f"{int(inside[j])} knots fall strictly between the neighbouring observations at "
+                f"t = {times[j]:.6g} and {times[j + 1]:.6g}"
+            )
+        if outside:
+            where.append(f"{outside} knots lie outside the observed times")
+        raise ValueError(
+            f"`knots`: the observation times do not determine the {num_knots} knot values of "
+            f"model={model!r} (rank {rank} of {num_knots}"
+            + (f"; {' and '.join(where)}" if where else "")
+            + "). Spread the knots over the observed times or pass an int (evenly spaced knots)."
         )
 
 
@@ -506,7 +559,10 @@ def fit_angular_velocity(
     - `knots`: time-varying models only: the number K of uniformly spaced knots on
       `[times[0], times[-1]]`, or the knot times `(K,)`; K ≥ 2 (piecewise linear) or ≥ 4 (spline),
       and K ≤ T − 1 (the T − 1 rotations between neighbouring observations determine 3 unknowns each).
-      Default: `max(minimum, min(20, T // 4))`.
+      Explicit knot times must also be told apart by the observations: the (T − 1) × K matrix of the
+      basis functions' integrals over the observation intervals must have rank K, which fails when
+      knots bunch between two neighbouring observations or lie outside the observed times (checked
+      when `knots` and `times` are concrete). Default: `max(minimum, min(20, T // 4))`.
     - `frame`: `"world"` or `"body"` (the frame ω is expressed in).
     - `weights`: optional non-negative per-observation weights `(T,)` (e.g. 1/σₖ²).
     - `omega0`: optional starting guess: `(3,)`, or knot values `(K, 3)` for the time-varying models.
@@ -526,7 +582,8 @@ def fit_angular_velocity(
     `model="spline"`, whose 4 knots need 4 relative rotations), mismatched shapes of
     `times`, `qs`, `weights`, `omega0`, bad `knots` (including more knots than the data determine,
     K > T − 1), `model`, `frame` or `solver`, and — when the data are concrete (not under
-    `jit`/`vmap`) — non-finite or non-increasing times and zero, non-finite or subnormal rows of `qs`.
+    `jit`/`vmap`) — non-finite or non-increasing times, zero, non-finite or subnormal rows of `qs`,
+    and explicit knot times the observations do not determine (see `knots`).
 
     **Batches:** `jax.vmap(fit_angular_velocity)(times, qs)` fits many independent bodies in one
     compiled call (`qs` of shape `(B, T, 4)`); every field of the result gains the leading axis B.

@@ -520,3 +520,61 @@ def test_validation_errors():
         jaxquat.fit_rigid_body(times, qs, inertia0=np.array([1.0, -1.0, 2.0]))
     with pytest.raises(ValueError, match="`omega0`"):
         jaxquat.fit_rigid_body(times, qs, omega0=np.zeros((2, 3)))
+
+
+def _knot_jacobian_rank(times, knots, model):
+    """Numerical rank of d(fitted orientations)/d(knot values) at a generic ω(t), from jacfwd through
+    the fit's own model (an independent look at what `_check_identifiable` predicts from ∫ B_i dt)."""
+    from jaxquat._fitting import _curve_model
+
+    times, knots = jnp.asarray(times), jnp.asarray(knots)
+    values = jnp.asarray(np.random.default_rng(3).normal(size=(knots.shape[0], 3)))
+    reference = jaxquat.identity()
+
+    def fitted(values):
+        return _curve_model((jnp.zeros(3), values), times, reference, knots, "world", model, 4)[2]
+
+    jac = jax.jacfwd(fitted)(values).reshape(-1, values.size)
+    singular = np.linalg.svd(np.asarray(jac), compute_uv=False)
+    return int(np.sum(singular > 1e-8 * singular[0]))
+
+
+@pytest.mark.parametrize(
+    "model, knots, determined",
+    [
+        ("piecewise_linear", [0.0, 0.3, 0.6, 4.0], False),  # two knots inside (t0, t1)
+        (
+            "piecewise_linear",
+            [0.0, 2.2, 2.4, 2.6, 5.0],
+            True,
+        ),  # three inside (t2, t3), yet told apart
+        (
+            "piecewise_linear",
+            [0.0, 2.2, 2.4, 2.6, 2.8, 6.0],
+            False,
+        ),  # two hats only inside (t2, t3)
+        ("piecewise_linear", [-10.0, -9.0, 0.0, 4.0], False),  # two knots before the observations
+        ("piecewise_linear", [0.0, 1.5, 2.5, 4.0], True),
+        ("spline", [0.0, 0.2, 0.4, 4.0], True),  # 4 knots: one global cubic, however bunched
+        ("spline", [0.0, 1.5, 2.5, 3.5, 5.0], True),
+    ],
+)
+def test_explicit_knots_bunched_between_observations_are_rejected(model, knots, determined):
+    """Counting knots (K ≤ T − 1) is not enough: knots bunched between two neighbouring observations
+    leave the knot values undetermined. The check agrees with the rank of the model's Jacobian with
+    respect to the knot values (3K when determined, less otherwise), not with a count of knots per
+    interval, and a determined setup still fits a constant ω exactly."""
+    times = np.arange(knots[-1] + 1.0)  # observations at t = 0, 1, …, last knot
+    knots = np.asarray(knots)
+    rank = _knot_jacobian_rank(times, knots, model)
+    assert (rank == 3 * knots.shape[0]) == determined, rank
+    omega = np.array([0.3, -0.2, 0.5])
+    qs = jaxquat.step(jaxquat.identity(), jnp.asarray(omega), jnp.asarray(times))
+    if determined:
+        fit = jaxquat.fit_angular_velocity(times, qs, model=model, knots=knots)
+        np.testing.assert_allclose(
+            fit.omega.values, np.broadcast_to(omega, (len(knots), 3)), atol=1e-9
+        )
+    else:
+        with pytest.raises(ValueError, match="`knots`: the observation times do not determine"):
+            jaxquat.fit_angular_velocity(times, qs, model=model, knots=knots)
