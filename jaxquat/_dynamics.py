@@ -442,7 +442,15 @@ class _RigidBodyVectorField(eqx.Module):
     frame: str = eqx.field(static=True)
 
     def __call__(self, t, y, args):
-        q, omega = y
+        if not isinstance(y, (tuple, list)) or len(y) != 2:
+            raise ValueError(
+                "the state `y` must be a pair (q, omega) of arrays of shapes (..., 4) and (..., 3); "
+                f"got {type(y).__name__}"
+                + (f" of length {len(y)}." if isinstance(y, (tuple, list)) else ".")
+            )
+        q = check_trailing(y[0], 4, "y[0] (q)")
+        omega = check_trailing(y[1], 3, "y[1] (omega)")
+        broadcast_batch((q, 1, "y[0] (q)"), (omega, 1, "y[1] (omega)"))  # a clear error, or nothing
         omega_body = omega if self.frame == "body" else rotate(omega, conjugate(q))
         field = _rigid_body_field(self.inertia, self.torque, self.frame)
         _, omega_dot_body = field(t, q, omega_body)
@@ -470,6 +478,10 @@ def rigid_body_vector_field(
     - `frame`: `"body"` (default) or `"world"`: the frame of ω and of the torque.
 
     **Returns:** a callable PyTree (an `equinox.Module`; the inertia is a differentiable leaf).
+
+    **Errors:** a `ValueError` for a bad `inertia`, `frame` or `torque` here, and at trace time of
+    a call for a state that is not a pair `(q (..., 4), ω (..., 3))` with broadcastable batch axes
+    (naming `y[0] (q)` or `y[1] (omega)`) or a torque of the wrong shape.
     """
     frame = check_frame(frame)
     inertia = _check_inertia(inertia)

@@ -292,3 +292,23 @@ def test_inertia_wrong_shape_names_both_forms():
         ValueError, match=r"`inertia` must be a \(\.\.\., 3, 3\) matrix or principal"
     ):
         jq.euler_equations(OMEGA, jnp.eye(2))
+
+
+@pytest.mark.parametrize(
+    "y, match",
+    [
+        (
+            (jnp.ones((2, 4)), jnp.ones((3, 3))),
+            r"`y\[0\] \(q\)` has shape \(2, 4\); `y\[1\] \(omega\)`",
+        ),
+        ((jnp.ones(4), jnp.ones(4)), r"`y\[1\] \(omega\)` must have shape \(\.\.\., 3\)"),
+        ((jnp.ones(3), jnp.ones(3)), r"`y\[0\] \(q\)` must have shape \(\.\.\., 4\)"),
+        (jnp.ones(7), r"the state `y` must be a pair \(q, omega\)"),
+        ((jnp.ones(4),), r"tuple of length 1"),
+    ],
+)
+def test_rigid_body_vector_field_bad_state_names_the_part(y, match):
+    """A malformed state is a ValueError naming y[0] (q) or y[1] (omega), never a JAX TypeError."""
+    field = jq.rigid_body_vector_field(MOMENTS)
+    with pytest.raises(ValueError, match=match):
+        field(0.0, y, None)
