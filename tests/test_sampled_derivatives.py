@@ -124,6 +124,21 @@ def test_second_derivatives_match_a_naive_loop(getkey):
         np.testing.assert_allclose(value, expected, rtol=1e-12, err_msg=name)
 
 
+@pytest.mark.parametrize("save", ["final", "all"])
+def test_empty_batch_and_non_finite_samples(save):
+    """No bodies: an empty result of the right shape (as with a constant or callable ω), not an error
+    from the run-wide series test. A NaN or inf sample makes the affected body's result NaN, as the
+    general scan's (the series test then falls to exact sin/cos)."""
+    out = jq.integrate(jnp.ones((0, 4)), jq.sampled(jnp.ones((5, 0, 3)), DT), DT, 5, save=save)
+    assert out.shape == ((0, 4) if save == "final" else (6, 0, 4))
+    q0 = jq.normalize(jnp.array([[1.0, 0.2, 0.0, 0.0], [0.3, 0.0, 1.0, 0.0]]))
+    for bad in [np.nan, np.inf]:
+        samples = jnp.full((5, 2, 3), 0.1).at[2, 1, 0].set(bad)
+        out = jq.integrate(q0, jq.sampled(samples, DT), DT, 5, save=save)
+        final = out if save == "final" else out[-1]
+        assert np.all(np.isfinite(final[0])) and np.all(np.isnan(final[1]))
+
+
 def test_held_samples_off_the_grid(getkey):
     """Samples on a coarser grid than the steps (each held for two steps, from a shifted start): the
     gradient w.r.t. a sample sums over the steps that use it, and equals the naive loop's; vmap over
