@@ -249,6 +249,13 @@ def _run_all(step, carry, xs, num_steps, renormalize_every, unroll):
     return jnp.concatenate([as_array(carry)[None], saved], axis=0)
 
 
+def _next_power(c, w, v_sq):
+    """(a, b) ↦ (a + b v)(w + v) = (a w − b |v|²) + (a + b w) v: one more power of r = w + v, held as
+    its components in the plane of 1 and v (no division, so nothing singular at ω = 0)."""
+    a, b = c
+    return a * w - b * v_sq, a + b * w
+
+
 def _constant_trajectory(q0, rotation, num_steps, frame, renormalize_every):
     """q_k = r^k ⊗ q₀ (world; q₀ ⊗ r^k in the body frame) for k = 0 … T, time-major `(T + 1, *batch, 4)`.
 
@@ -278,9 +285,8 @@ def _constant_trajectory(q0, rotation, num_steps, frame, renormalize_every):
     w, vx, vy, vz = rotation
     v_sq = vx * vx + vy * vy + vz * vz
 
-    def next_power(c, _):  # (a, b) ↦ (a + b v)(w + v) = (a w − b |v|²) + (a + b w) v
-        a, b = c
-        return (a * w - b * v_sq, a + b * w), c
+    def next_power(c, _):
+        return _next_power(c, w, v_sq), c
 
     (a_block, b_block), (a, b) = lax.scan(
         next_power, (jnp.ones_like(w), jnp.zeros_like(w)), None, length=block
@@ -643,17 +649,12 @@ def _constant_final(q0, omega, h, frame, num_steps, renormalize_every, unroll):
     mode then costs about one forward pass and stores nothing per step (W5). The steps are the same
     products, so this is the derivative of the computed result to round-off (O(Tε)).
     """
-    # Every power of r = w + v lies in the plane of 1 and v: r^k = a_k + b_k v with
-    # (a, b) ↦ (a w − b |v|², a + b w), the step's product restricted to that plane (no division, so
-    # nothing singular at ω = 0). Stepping those two components and applying r^T once is the same
+    # Every power of r = w + v lies in the plane of 1 and v: r^k = a_k + b_k v (`_next_power`, the
+    # step's product restricted to that plane). Stepping those two components and applying r^T once is the same
     # products associated differently (r^T ⊗ q₀ rather than r ⊗ (r ⊗ (… ⊗ q₀))), at 5 flops a
     # step instead of the Hamilton product's 28.
     w, vx, vy, vz = _exp_soa(_split(omega * h, 3), False)
     v_sq = vx * vx + vy * vy + vz * vz
-
-    def step(c, _):
-        a, b = c
-        return a * w - b * v_sq, a + b * w
 
     def normalize(c):  # |a + b v|
         a, b = c
@@ -661,7 +662,7 @@ def _constant_final(q0, omega, h, frame, num_steps, renormalize_every, unroll):
         return a / norm, b / norm
 
     a, b = _run_final(
-        step,
+        lambda c, _: _next_power(c, w, v_sq),
         (jnp.ones_like(w), jnp.zeros_like(w)),
         None,
         num_steps,
