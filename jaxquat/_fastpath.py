@@ -650,9 +650,9 @@ def _constant_final(q0, omega, h, frame, num_steps, renormalize_every, unroll):
     products, so this is the derivative of the computed result to round-off (O(Tε)).
     """
     # Every power of r = w + v lies in the plane of 1 and v: r^k = a_k + b_k v (`_next_power`, the
-    # step's product restricted to that plane). Stepping those two components and applying r^T once is the same
-    # products associated differently (r^T ⊗ q₀ rather than r ⊗ (r ⊗ (… ⊗ q₀))), at 5 flops a
-    # step instead of the Hamilton product's 28.
+    # step's product restricted to that plane). Stepping those two components and applying r^T once
+    # is the same products associated differently (r^T ⊗ q₀ rather than r ⊗ (r ⊗ (… ⊗ q₀))), at
+    # 5 flops a step instead of the Hamilton product's 28.
     w, vx, vy, vz = _exp_soa(_split(omega * h, 3), False)
     v_sq = vx * vx + vy * vy + vz * vz
 
