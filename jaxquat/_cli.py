@@ -849,7 +849,7 @@ def _build_parser() -> argparse.ArgumentParser:
     simulate.add_argument("--steps", type=_positive_int, help="number of steps (1000)")
     simulate.add_argument("--dt", type=_positive_float, help="time step in s (0.01)")
     simulate.add_argument(
-        "--method", help="integrator (euler, midpoint, magnus4, magnus6, cf4, naive, rk4)"
+        "--method", help="integrator (euler, midpoint, magnus4, magnus6, magnus8, cf4, naive, rk4)"
     )
     simulate.add_argument("--frame", choices=_FRAMES, help="frame of ω")
     simulate.add_argument(

@@ -23,9 +23,18 @@ import jaxquat as jq
 from jaxquat._integrate import lie_step, scan_steps
 
 FRAMES = ["world", "body"]
-LIE = ["euler", "midpoint", "magnus4", "magnus6", "cf4"]
+LIE = ["euler", "midpoint", "magnus4", "magnus6", "magnus8", "cf4"]
 ALL = LIE + ["naive", "rk4"]
-ORDERS = {"euler": 1, "midpoint": 2, "magnus4": 4, "magnus6": 6, "cf4": 4, "naive": 1, "rk4": 4}
+ORDERS = {
+    "euler": 1,
+    "midpoint": 2,
+    "magnus4": 4,
+    "magnus6": 6,
+    "magnus8": 8,
+    "cf4": 4,
+    "naive": 1,
+    "rk4": 4,
+}
 
 
 def angle(p, q):
@@ -81,7 +90,8 @@ def test_coning_closed_form_solves_the_kinematic_equation():
 @pytest.mark.parametrize("frame", FRAMES)
 def test_convergence_orders_on_coning(frame):
     """Acceptance 3: slope of log error vs log dt over 3 refinements, T = 2.3 (not a whole number of
-    periods): euler 1, midpoint 2, magnus4 4, magnus6 6, cf4 4, naive 1, rk4 4, each within ±0.15.
+    periods): euler 1, midpoint 2, magnus4 4, magnus6 6, magnus8 8, cf4 4, naive 1, rk4 4, each
+    within ±0.15 (magnus8, 5 to 40 steps: 8.00 world, 7.98 body).
 
     The four resolutions run as one vmapped loop of `lie_step` (the step `integrate` scans; one
     compilation per method), and `integrate` is checked against it at the finest resolution."""
@@ -90,8 +100,8 @@ def test_convergence_orders_on_coning(frame):
     omega = CONING_OMEGA[frame]
     for method in ALL:
         # The naive step's O(h²) lag (θ³/12 per step) hides its first-order term at coarse steps.
-        # magnus6 reaches round-off within 8x refinement from 40 steps; it starts from 10.
-        base = {"naive": 640, "magnus6": 10}.get(method, 40)
+        # magnus6 and magnus8 reach round-off within 8x refinement from 40 steps; they start lower.
+        base = {"naive": 640, "magnus6": 10, "magnus8": 5}.get(method, 40)
         steps = np.array([base, 2 * base, 4 * base, 8 * base])
 
         def run(n, method=method):
@@ -112,7 +122,7 @@ def test_convergence_orders_on_coning(frame):
             method,
             errors,
         )  # still above round-off: the slope is meaningful
-        if method in ("cf4", "magnus6") and frame == "world":
+        if method in ("cf4", "magnus6", "magnus8") and frame == "world":
             direct = jq.integrate(
                 CONE_Q0,
                 omega,
@@ -148,6 +158,8 @@ def _per_step_angle(method, theta):
         ("midpoint", "body"),
         ("magnus4", "world"),
         ("magnus6", "body"),
+        ("magnus8", "world"),
+        ("magnus8", "body"),
         ("cf4", "body"),
         ("naive", "world"),
         ("rk4", "body"),
@@ -174,7 +186,7 @@ def test_constant_omega_matches_each_methods_closed_form(method, frame, getkey):
 def test_piecewise_constant_sampled_omega_is_exact(frame, getkey):
     """Acceptance 3b: sampled ω + euler is exact to round-off (SciPy composition of the per-step
     rotations, also with θ up to ~3 rad per step and t0 ≠ 0); the interior stages of midpoint,
-    magnus4 and magnus6 see the same sample, so they are exact too."""
+    magnus4, magnus6 and magnus8 see the same sample, so they are exact too."""
     steps, dt, t0 = 200, 0.05, 1000.3
     omegas = 20.0 * jax.random.normal(getkey(), (steps, 2, 3))
     q0 = random_unit(getkey(), (2,))
@@ -187,7 +199,7 @@ def test_piecewise_constant_sampled_omega_is_exact(frame, getkey):
         trajectory.append(current.as_quat())
     trajectory = np.roll(np.stack(trajectory), 1, axis=-1)  # xyzw -> wxyz
     source = jq.sampled(omegas, dt, t0=t0)
-    for method in ["euler", "midpoint", "magnus4", "magnus6"]:
+    for method in ["euler", "midpoint", "magnus4", "magnus6", "magnus8"]:
         qs = jq.integrate(q0, source, dt, steps, frame=frame, method=method, t0=t0)
         assert qs.shape == (steps + 1, 2, 4)
         assert_quat_close(qs, trajectory, atol=1e-12)
@@ -228,7 +240,7 @@ def test_lie_step_coupled_state_uses_consistent_stages(method):
     np.testing.assert_allclose(decay, stability**steps, rtol=1e-13)
 
 
-@pytest.mark.parametrize("method", ["magnus4", "magnus6"])
+@pytest.mark.parametrize("method", ["magnus4", "magnus6", "magnus8"])
 def test_lie_step_magnus_rejects_a_coupled_state(method):
     with pytest.raises(ValueError, match=method):
         lie_step(
@@ -245,8 +257,8 @@ def test_lie_step_magnus_rejects_a_coupled_state(method):
 @pytest.mark.parametrize("frame", FRAMES)
 def test_magnus_constant_omega_is_exact_in_float32(frame, getkey):
     """For constant ω the Magnus increments are exactly hω: the commutator corrections vanish (the
-    Gauss-point rates are equal), so magnus6 and magnus4 take bit-identical float32 steps, and both
-    stay within float32 round-off of the float64 closed form (also at θ = 2.5 rad per step)."""
+    Gauss-point rates are equal), so magnus8, magnus6 and magnus4 take bit-identical float32 steps, and
+    they stay within float32 round-off of the float64 closed form (also at θ = 2.5 rad per step)."""
     thetas = np.array([0.0, 1e-4, 0.3, 2.5])
     axes = np.array(jax.random.normal(getkey(), (thetas.size, 3)))
     axes /= np.linalg.norm(axes, axis=-1, keepdims=True)
@@ -255,8 +267,10 @@ def test_magnus_constant_omega_is_exact_in_float32(frame, getkey):
     q32 = jnp.asarray(random_unit(getkey(), (thetas.size,)), jnp.float32)
     m6 = jq.integrate(q32, w32, dt, steps, frame=frame, method="magnus6", save="final")
     m4 = jq.integrate(q32, w32, dt, steps, frame=frame, method="magnus4", save="final")
-    assert m6.dtype == jnp.float32
+    m8 = jq.integrate(q32, w32, dt, steps, frame=frame, method="magnus8", save="final")
+    assert m6.dtype == m8.dtype == jnp.float32
     np.testing.assert_array_equal(np.asarray(m6), np.asarray(m4))
+    np.testing.assert_array_equal(np.asarray(m8), np.asarray(m4))
     w64 = np.asarray(w32, np.float64)
     q64 = jq.normalize(jnp.asarray(q32, jnp.float64))
     rotation = Rotation.from_rotvec(steps * dt * w64).as_quat()  # SciPy, xyzw
@@ -265,7 +279,7 @@ def test_magnus_constant_omega_is_exact_in_float32(frame, getkey):
     assert np.max(angle(m6, expected)) <= 2e-5
 
 
-@pytest.mark.parametrize("method", ["magnus4", "magnus6"])
+@pytest.mark.parametrize("method", ["magnus4", "magnus6", "magnus8"])
 def test_magnus_body_frame_is_the_world_frame_of_the_inverse(method):
     """q̇ = ½q ω̃_b is q̇* = ½(−ω̃_b) q*, and a ↦ −a maps the body bracket b × a onto the world
     bracket a × b, so a body-frame Magnus run is the conjugate of the world-frame run with −ω_b from
@@ -430,6 +444,7 @@ def _tangent_basis(q):
         ("cf4", "body", "coupled"),
         ("magnus4", "world", "callable"),
         ("magnus6", "body", "callable"),
+        ("magnus8", "world", "callable"),
     ],
 )
 def test_gradients_agree_with_finite_differences(method, frame, source, getkey):
@@ -655,8 +670,9 @@ def test_bad_arguments_raise_value_errors_naming_them():
         jq.integrate(q0, lambda t, q: jnp.ones(2), 0.1, 10)
     with pytest.raises(ValueError, match="omega"):  # magnus4 needs a q-independent ω
         jq.integrate(q0, lambda t, q: q[..., 1:] + t, 0.1, 10, method="magnus4")
-    with pytest.raises(ValueError, match="magnus6"):
-        jq.integrate(q0, lambda t, q: q[..., 1:] + t, 0.1, 10, method="magnus6")
+    for method in ("magnus6", "magnus8"):
+        with pytest.raises(ValueError, match=method):
+            jq.integrate(q0, lambda t, q: q[..., 1:] + t, 0.1, 10, method=method)
     with pytest.raises(ValueError, match="q0"):
         jq.integrate(jnp.ones(3), w, 0.1, 10)
     with pytest.raises(ValueError, match="num_steps"):
