@@ -100,6 +100,7 @@ from ._solvers import (
     LieEuler as LieEuler,
     Magnus4 as Magnus4,
     Magnus6 as Magnus6,
+    Magnus8 as Magnus8,
     NormalizedEuler as NormalizedEuler,
     corrected_vector_field as corrected_vector_field,
     kinematic_vector_field as kinematic_vector_field,

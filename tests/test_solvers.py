@@ -93,6 +93,8 @@ def test_validation_errors():
         jq.Magnus4(frame="space")
     with pytest.raises(ValueError, match="frame"):
         jq.Magnus6(frame="space")
+    with pytest.raises(ValueError, match="frame"):
+        jq.Magnus8(frame="space")
     # The fields check the state they are given ...
     term = diffrax.ODETerm(jq.kinematic_vector_field(jnp.ones(3)))
     with pytest.raises(ValueError, match="`q` must have shape"):
@@ -104,7 +106,7 @@ def test_validation_errors():
     with pytest.raises(ValueError, match="y0"):
         diffrax.diffeqsolve(term, jq.CF4(), 0.0, 1.0, 0.1, {"q": jq.identity()})
     # The Magnus solvers take `q` or `(q, x)` only (a longer tuple is e.g. BacksolveAdjoint's).
-    for magnus in (jq.Magnus4(), jq.Magnus6()):
+    for magnus in (jq.Magnus4(), jq.Magnus6(), jq.Magnus8()):
         with pytest.raises(ValueError, match="tuple of length 3"):
             y0 = (jq.identity(), jnp.zeros(2), jnp.zeros(1))
             diffrax.diffeqsolve(term, magnus, 0.0, 1.0, 0.1, y0)
@@ -254,6 +256,9 @@ def _orders(solver, frame):
         (jq.Magnus6(frame="body"), "body", 5.85, 6.2),
         (jq.Magnus6(frame="world"), "world", 5.85, 6.2),
         (jq.Magnus6(frame="world"), "body", 1.9, 2.1),  # wrong frame: order 2
+        (jq.Magnus8(frame="body"), "body", 7.8, 8.3),
+        (jq.Magnus8(frame="world"), "world", 7.8, 8.3),
+        (jq.Magnus8(frame="world"), "body", 1.9, 2.1),  # wrong frame: order 2
         (jq.CF4(), "body", 3.9, 4.2),
         (jq.RKMK45(), "body", 4.8, 5.6),
     ],
@@ -264,7 +269,7 @@ def test_orders_norm_and_dense_output(solver, frame, low, high):
     assert low <= order_back <= high, order_back
     assert norm_dev <= 1e-14
     assert dense_norm_dev <= 1e-12
-    if isinstance(solver, jq.RKMK45) or (isinstance(solver, jq.Magnus6) and low > 5):
+    if isinstance(solver, jq.RKMK45) or (isinstance(solver, (jq.Magnus6, jq.Magnus8)) and low > 5):
         assert dense_order >= 3.0, dense_order
 
 
@@ -395,7 +400,7 @@ def test_backsolve_adjoint():
     exact = grad(PARAMS)
     backsolve = jax.grad(lambda p: _final_loss(p, jq.RKMK45(), diffrax.BacksolveAdjoint()))(PARAMS)
     assert np.max(np.abs(backsolve - exact)) <= 1e-6 * np.max(np.abs(exact))
-    for magnus in (jq.Magnus4(), jq.Magnus6()):
+    for magnus in (jq.Magnus4(), jq.Magnus6(), jq.Magnus8()):
         with pytest.raises(ValueError, match=r"BacksolveAdjoint\(solver=diffrax\.Tsit5\(\)\)"):
             jax.grad(lambda p, m=magnus: _final_loss(p, m, diffrax.BacksolveAdjoint()))(PARAMS)
     alternative = jax.grad(
@@ -416,6 +421,7 @@ def test_backsolve_adjoint():
         jq.ExpMidpoint(),
         jq.Magnus4(),
         jq.Magnus6(),
+        jq.Magnus8(),
         jq.CF4(),
         jq.RKMK45(),
     ],
@@ -453,21 +459,25 @@ def test_float32_stays_float32(solver):
 
 
 @pytest.mark.parametrize("frame", ["world", "body"])
-def test_magnus6_equals_integrate_magnus6(frame):
-    """The diffrax solver and `integrate(method="magnus6")` take the same step (to round-off), with
-    a tuple state whose x-part is three-point Gauss quadrature (exact for a quintic in t)."""
+@pytest.mark.parametrize(
+    "solver, method, power", [(jq.Magnus6, "magnus6", 5), (jq.Magnus8, "magnus8", 7)]
+)
+def test_magnus_solver_equals_integrate(frame, solver, method, power):
+    """The diffrax solvers and `integrate(method=...)` take the same step (to round-off), with a tuple
+    state whose x-part is Gauss quadrature: three points for Magnus6 (exact for a quintic in t), four
+    for Magnus8 (exact for a septic)."""
     omega = Coning(frame)
     steps, t1 = 37, 2.3
     h = t1 / steps
 
     def field(t, y, args):
         q, x = y
-        return jq.rate(q, omega(t, q), frame=frame), jnp.stack([t**5, jnp.cos(t)])
+        return jq.rate(q, omega(t, q), frame=frame), jnp.stack([t**power, jnp.cos(t)])
 
     y0 = (coning_exact(0.0), jnp.zeros(2))
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(field),
-        jq.Magnus6(frame=frame),
+        solver(frame=frame),
         0.0,
         t1,
         h,
@@ -481,9 +491,9 @@ def test_magnus6_equals_integrate_magnus6(frame):
         h,
         steps,
         frame=frame,
-        method="magnus6",
+        method=method,
         save="final",
     )
     np.testing.assert_allclose(sol.ys[0][-1], direct, atol=1e-13)
-    np.testing.assert_allclose(sol.ys[1][-1, 0], t1**6 / 6, rtol=1e-12)
+    np.testing.assert_allclose(sol.ys[1][-1, 0], t1 ** (power + 1) / (power + 1), rtol=1e-12)
     np.testing.assert_allclose(sol.ys[1][-1, 1], np.sin(t1), atol=1e-11)
