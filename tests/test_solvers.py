@@ -381,7 +381,9 @@ def _directional_fd(loss, p, v, eps=1e-5):
     return (8.0 * (f(eps) - f(-eps)) - (f(2 * eps) - f(-2 * eps))) / (12.0 * eps)
 
 
-@pytest.mark.parametrize("solver", [jq.RKMK45(), jq.LieEuler(), jq.Magnus6(frame="world")])
+@pytest.mark.parametrize(
+    "solver", [jq.RKMK45(), jq.LieEuler(), jq.Magnus6(frame="world"), jq.Magnus8(frame="world")]
+)
 def test_gradients_match_finite_differences(solver):
     loss, grad, forward = _compiled(solver)
     for p in (PARAMS, jnp.zeros(6)):  # generic, and at rest (series branches; not NaN)
