@@ -102,7 +102,7 @@ def relaunch_with_huge_pages(command: Sequence[str]) -> None:
 # W4 sweeps that are dense around each method's crossing of W4_TARGET_ERROR (1e-8 rad), so the time
 # at the target is interpolated between neighbours a few per cent apart in steps (fourth-order
 # methods: error ∝ steps⁻⁴; magnus4 crosses near 480 steps, cf4 near 360; the sixth-order magnus6
-# near 92) or ~1.4× apart in tolerance
+# near 92, the eighth-order magnus8 near 52) or ~1.4× apart in tolerance
 # (Tsit5 and RKMK45 cross near 3.4e-9, numpy-quaternion's DOP853 near 6.5e-9). The outer points
 # anchor the plot and keep the crossing bracketed.
 _W4_DENSE_STEPS = (256, 384, 416, 448, 480, 512, 544, 576, 1024)
@@ -110,6 +110,8 @@ _W4_DENSE_TOLERANCES = (1e-7, 2e-8, 1.4e-8, 1e-8, 7e-9, 5e-9, 3.5e-9, 2.5e-9, 1.
 W4_DENSE_SWEEPS: tuple[tuple[str, tuple[float, ...]], ...] = (
     ("jaxquat integrate magnus4", _W4_DENSE_STEPS),
     ("jaxquat integrate magnus6", (64, 80, 88, 96, 104, 112, 128)),
+    ("jaxquat integrate magnus8", (32, 44, 48, 52, 56, 60, 64)),
+    ("jaxquat diffrax Magnus8", (32, 44, 48, 52, 56, 60, 64)),
     ("jaxquat diffrax Magnus6", (64, 80, 88, 96, 104, 112, 128)),
     ("jaxquat integrate cf4", (256, 320, 352, 384, 416, 512)),
     ("jaxquat diffrax Magnus4", _W4_DENSE_STEPS),
@@ -149,8 +151,23 @@ class Preset:
     w4_repeats: int
     w5_sizes: tuple[int, ...]
     reference: bool  # also time the tuned hand-written JAX loop (not a peer; a yardstick)
-    w4_methods: tuple[str, ...] = ("euler", "midpoint", "magnus4", "magnus6", "cf4")  # `integrate`
-    w4_solvers: tuple[str, ...] = ("LieEuler", "ExpMidpoint", "Magnus4", "Magnus6", "CF4", "RKMK45")
+    w4_methods: tuple[str, ...] = (  # `integrate`
+        "euler",
+        "midpoint",
+        "magnus4",
+        "magnus6",
+        "magnus8",
+        "cf4",
+    )
+    w4_solvers: tuple[str, ...] = (
+        "LieEuler",
+        "ExpMidpoint",
+        "Magnus4",
+        "Magnus6",
+        "Magnus8",
+        "CF4",
+        "RKMK45",
+    )
     # W4 sweeps of single methods, by series name, instead of `w4_steps` / `w4_tolerances` (e.g.
     # dense around each method's crossing of the target error).
     w4_sweeps: tuple[tuple[str, tuple[float, ...]], ...] = ()
@@ -201,8 +218,8 @@ PRESETS: dict[str, Preset] = {
         reference=False,
         w2_check_bodies=512,
         w2_budget=2.0,
-        w4_methods=("euler", "midpoint", "magnus4", "magnus6", "cf4"),
-        w4_solvers=("Magnus4", "Magnus6", "RKMK45"),
+        w4_methods=("euler", "midpoint", "magnus4", "magnus6", "magnus8", "cf4"),
+        w4_solvers=("Magnus4", "Magnus6", "Magnus8", "RKMK45"),
         w4_sweeps=W4_DENSE_SWEEPS,
     ),
     "full": Preset(
