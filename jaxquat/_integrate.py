@@ -176,7 +176,7 @@ def magnus8_exponent(u1: Array, u2: Array, u3: Array, u4: Array, frame: str) -> 
 
     # Written on component tuples (structure of arrays): one stack at the end instead of a slice and a
     # stack per bracket. With `cross` per bracket, 48 steps of the benchmark's coning motion (W4) took
-    # 61–66 µs on XLA:CPU; on components 40–49 µs.
+    # 61–77 µs on XLA:CPU; on components 40–49 µs.
     def vec(u):
         return (u[..., 0], u[..., 1], u[..., 2])
 
