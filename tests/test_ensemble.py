@@ -78,7 +78,7 @@ def test_rigid_bodies_match_simulate_rigid_body(getkey):
     )
 
 
-@pytest.mark.parametrize("method", ["magnus4", "cf4"])
+@pytest.mark.parametrize("method", ["magnus4", "magnus8", "cf4"])
 def test_time_dependent_omega_chunked_equals_unchunked_and_integrate(getkey, method):
     q0, _ = _ensemble(getkey, 33)
     rates = jax.random.normal(getkey(), (33, 3))
