@@ -23,6 +23,7 @@ the augmented state of `diffrax.BacksolveAdjoint`, so RK-type jaxquat solvers wo
 
 from __future__ import annotations
 
+import functools
 import inspect
 import math
 from collections.abc import Callable
@@ -643,6 +644,27 @@ class _Magnus(diffrax.AbstractSolver):
             ks.append(dxs)
         return q0, x0, treedef, us, ks
 
+    def _advance(self, q0, x0, treedef, y0, us, ks, phi, cubic):
+        """The step by the exponent Ω = `phi`, with dense output `cubic(*rates)` (coefficients of s,
+        s², s³ of the integral of an interpolant of the rates) for q, made to end exactly at Ω, and
+        for each other leaf, whose step is the cubic's value at s = 1 (Gauss quadrature)."""
+        if self.frame == "world":
+            q1 = _exp_left(phi, q0)
+        else:
+            q1 = _unit(multiply(q0, from_rotvec(phi)))
+        qc = cubic(*us)
+        qc = qc.at[2].add(phi - jnp.sum(qc, axis=0))  # end exactly at Ω
+        if self.frame == "body":
+            qc = rotate(qc, q0)  # q0 ⊗ exp(V) = exp(q0 V q0*) ⊗ q0
+        x1, xcs = [], []
+        for i, x in enumerate(x0):
+            xc = cubic(*(k[i] for k in ks))
+            x1.append(x + jnp.sum(xc, axis=0))
+            xcs.append(xc)
+        y1 = _join(treedef, q1, x1)
+        dense_info = dict(y0=y0, coeffs=_join(treedef, qc, xcs))
+        return y1, None, dense_info, None, diffrax.RESULTS.successful
+
 
 class Magnus4(_Magnus):
     r"""The fourth-order Magnus method with two Gauss points and one commutator.
@@ -743,25 +765,9 @@ class Magnus6(_Magnus):
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del solver_state, made_jump
         q0, x0, treedef, us, ks = self._stages(terms, t0, t1, y0, args, _STAGE_FRACTIONS["magnus6"])
-        offset = _SQRT15 / 10.0
-        u1, u2, u3 = us
-        phi = magnus6_exponent(u1, u2, u3, self.frame)
-        if self.frame == "world":
-            q1 = _exp_left(phi, q0)
-        else:
-            q1 = _unit(multiply(q0, from_rotvec(phi)))
-        qc = _gauss_cubic(u1, u2, u3, offset)
-        qc = qc.at[2].add(phi - jnp.sum(qc, axis=0))  # end exactly at Ω
-        if self.frame == "body":
-            qc = rotate(qc, q0)  # q0 ⊗ exp(V) = exp(q0 V q0*) ⊗ q0
-        x1, xcs = [], []
-        for i, x in enumerate(x0):
-            xc = _gauss_cubic(ks[0][i], ks[1][i], ks[2][i], offset)
-            x1.append(x + jnp.sum(xc, axis=0))
-            xcs.append(xc)
-        y1 = _join(treedef, q1, x1)
-        dense_info = dict(y0=y0, coeffs=_join(treedef, qc, xcs))
-        return y1, None, dense_info, None, diffrax.RESULTS.successful
+        phi = magnus6_exponent(*us, self.frame)
+        cubic = functools.partial(_gauss_cubic, offset=_SQRT15 / 10.0)
+        return self._advance(q0, x0, treedef, y0, us, ks, phi, cubic)
 
 
 class Magnus8(_Magnus):
@@ -800,22 +806,7 @@ class Magnus8(_Magnus):
         del solver_state, made_jump
         q0, x0, treedef, us, ks = self._stages(terms, t0, t1, y0, args, _STAGE_FRACTIONS["magnus8"])
         phi = magnus8_exponent(*us, self.frame)
-        if self.frame == "world":
-            q1 = _exp_left(phi, q0)
-        else:
-            q1 = _unit(multiply(q0, from_rotvec(phi)))
-        qc = _gauss4_cubic(*us)
-        qc = qc.at[2].add(phi - jnp.sum(qc, axis=0))  # end exactly at Ω
-        if self.frame == "body":
-            qc = rotate(qc, q0)  # q0 ⊗ exp(V) = exp(q0 V q0*) ⊗ q0
-        x1, xcs = [], []
-        for i, x in enumerate(x0):
-            xc = _gauss4_cubic(*(k[i] for k in ks))
-            x1.append(x + jnp.sum(xc, axis=0))
-            xcs.append(xc)
-        y1 = _join(treedef, q1, x1)
-        dense_info = dict(y0=y0, coeffs=_join(treedef, qc, xcs))
-        return y1, None, dense_info, None, diffrax.RESULTS.successful
+        return self._advance(q0, x0, treedef, y0, us, ks, phi, _gauss4_cubic)
 
 
 def _gauss4_cubic(k1, k2, k3, k4):
