@@ -69,6 +69,17 @@ def _positive_int(text: str) -> int:
     return value
 
 
+_STEPS_MAX = 2**31 - 1  # the ensemble's step counter is an int32
+
+
+def _step_count(text: str) -> int:
+    """A number of steps: a positive integer that fits the ensemble's int32 step counter."""
+    value = _positive_int(text)
+    if value > _STEPS_MAX:
+        raise argparse.ArgumentTypeError(f"must be at most 2**31 - 1 = {_STEPS_MAX}, got {value}")
+    return value
+
+
 _SEED_MAX = 2**32 - 1
 
 
@@ -230,7 +241,7 @@ def _is_number(text: str) -> bool:
 # Options of `simulate` that a TOML file may set: name → parser (`bool` / `str`: the TOML type).
 _SIMULATE_KEYS: dict[str, Any] = {
     "bodies": _positive_int,
-    "steps": _positive_int,
+    "steps": _step_count,
     "dt": _positive_float,
     "method": str,
     "frame": str,
@@ -833,7 +844,7 @@ def _build_parser() -> argparse.ArgumentParser:
     demo.add_argument(
         "--bodies", type=_positive_int, default=100_000, help="ensemble size (100000)"
     )
-    demo.add_argument("--steps", type=_positive_int, default=400, help="time steps (400)")
+    demo.add_argument("--steps", type=_step_count, default=400, help="time steps (400)")
     demo.add_argument("--output", default="jaxquat_demo.png", help="PNG path (./jaxquat_demo.png)")
     demo.add_argument("--seed", type=_seed, default=0, help="random seed 0 … 2**32-1 (0)")
     demo.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -846,7 +857,7 @@ def _build_parser() -> argparse.ArgumentParser:
     simulate = commands.add_parser("simulate", help="run an ensemble; write results and a summary")
     simulate.add_argument("--config", help="TOML file with any of the options below (underscores)")
     simulate.add_argument("--bodies", type=_positive_int, help="number of bodies (10000)")
-    simulate.add_argument("--steps", type=_positive_int, help="number of steps (1000)")
+    simulate.add_argument("--steps", type=_step_count, help="number of steps (1000)")
     simulate.add_argument("--dt", type=_positive_float, help="time step in s (0.01)")
     simulate.add_argument(
         "--method", help="integrator (euler, midpoint, magnus4, magnus6, magnus8, cf4, naive, rk4)"

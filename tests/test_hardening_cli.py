@@ -116,6 +116,19 @@ def test_demo_with_non_finite_results_is_an_error(tmp_path, capsys, monkeypatch)
     assert not png.exists()
 
 
+def test_demo_steps_beyond_the_int32_step_counter_name_the_option(tmp_path, capsys):
+    argv = ["demo", "--steps", "3000000000", "--no-progress", "--output", tmp_path / "out"]
+    status, out, err = _run(argv, capsys)
+    _assert_one_line_error(status, out, err, "--steps", "at most 2**31 - 1", "3000000000")
+
+
+def test_toml_steps_beyond_the_int32_step_counter_names_the_file(tmp_path, capsys):
+    config = tmp_path / "run.toml"
+    config.write_text("bodies = 4\nsteps = 2147483648\n")
+    status, out, err = _run(["simulate", "--config", config, "--no-progress"], capsys)
+    _assert_one_line_error(status, out, err, "run.toml line 2", "steps", "at most 2**31 - 1")
+
+
 # --- 2. underdetermined time-varying fits ----------------------------------------------------------
 
 
@@ -312,7 +325,7 @@ def test_simulate_ensemble_rejects_step_counts_beyond_int32(tmp_path, capsys):
     argv = _simulate(tmp_path)
     argv[argv.index("--steps") + 1] = str(2**31)
     status, out, err = _run(argv, capsys)
-    _assert_one_line_error(status, out, err, "num_steps", "2147483647")
+    _assert_one_line_error(status, out, err, "--steps", "2147483647")
 
 
 @pytest.mark.parametrize("t0", ["a", None, [0.0, 1.0], 1 + 2j, float("nan")])
