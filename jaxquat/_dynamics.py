@@ -27,6 +27,7 @@ from ._numerics import (
     as_float_array,
     broadcast_batch,
     broadcasts_to,
+    check_callable,
     check_choice,
     check_frame,
     check_matrix,
@@ -408,10 +409,8 @@ def simulate_rigid_body(
     q0 = check_trailing(q0, 4, "q0")
     omega0 = check_trailing(omega0, 3, "omega0")
     inertia = _check_inertia(inertia)
-    if torque is not None and not callable(torque):
-        raise ValueError(
-            f"`torque` must be a callable torque(t, q, omega); got {type(torque).__name__}."
-        )
+    if torque is not None:
+        check_callable(torque, "torque", "torque(t, q, omega)", 3)
     dtype = q0.dtype  # the orientation's dtype governs, as in `integrate`
     q0, omega0, inertia = q0.astype(dtype), omega0.astype(dtype), inertia.astype(dtype)
     q0, omega0, inertia = broadcast_batch(
@@ -485,10 +484,8 @@ def rigid_body_vector_field(
     """
     frame = check_frame(frame)
     inertia = _check_inertia(inertia)
-    if torque is not None and not callable(torque):
-        raise ValueError(
-            f"`torque` must be a callable torque(t, q, omega); got {type(torque).__name__}."
-        )
+    if torque is not None:
+        check_callable(torque, "torque", "torque(t, q, omega)", 3)
     return _RigidBodyVectorField(inertia, torque, frame)
 
 
@@ -569,10 +566,7 @@ def simulate_deformable_body(
     method = check_choice(method, _METHODS, "method")
     check_choice(save, ("all", "final"), "save")
     _check_steps(num_steps, save, save_every)
-    if not callable(positions):
-        raise ValueError(
-            f"`positions` must be a callable positions(t) -> (n, 3); got {type(positions).__name__}."
-        )
+    check_callable(positions, "positions", "positions(t)", 1)
     masses = as_float_array(masses, "masses")
     q0 = check_trailing(q0, 4, "q0")
     if q0.shape != (4,):

@@ -35,6 +35,7 @@ from ._dynamics import simulate_rigid_body
 from ._integrate import LIE_METHODS, METHODS, _compensated_step, lie_step, scan_steps
 from ._numerics import (
     as_float_array,
+    check_callable,
     check_choice,
     check_frame,
     check_trailing,
@@ -747,6 +748,8 @@ def simulate_ensemble(
         raise ValueError(f"`progress` must be a bool or a callable; got {progress!r}.")
     if torque is not None and not dynamic:
         raise ValueError("`torque` needs a rigid-body ensemble: pass `inertia` too.")
+    if torque is not None:
+        check_callable(torque, "torque", "torque(t, q, omega)", 3)
 
     q0 = check_trailing(q0, 4, "q0")
     omega_fn = None
@@ -755,6 +758,7 @@ def simulate_ensemble(
             raise ValueError(
                 "`omega` must be an array of initial angular velocities for rigid bodies."
             )
+        check_callable(omega, "omega", "omega(t, q)", 2)
         omega_fn = omega
         omega = jnp.zeros((3,), q0.dtype)
     omega = check_trailing(omega, 3, "omega")

@@ -41,6 +41,7 @@ from ._fastpath import integrate_fast
 from ._kinematics import rate
 from ._numerics import (
     as_float_array,
+    check_callable,
     check_choice,
     check_frame,
     check_trailing,
@@ -580,6 +581,10 @@ def sampled(omegas: ArrayLike, dt: ArrayLike, *, t0: ArrayLike = 0.0) -> Sampled
     - `dt`: the sampling interval (scalar, > 0; checked unless traced).
     - `t0`: the time of the first sample.
 
+    Before `t0` the first sample is held and after the last interval the last one, so a run longer
+    than the samples keeps turning at the last sampled ω (check `omegas.shape[0] >= num_steps` if that
+    would be a mistake in your data).
+
     **Reverse mode.** When `integrate` runs on the sampling grid (its `dt` and `t0` equal these, as
     Python numbers or concrete arrays), the samples are scanned over as per-step inputs and the gradient
     w.r.t. `omegas` costs O(T). Otherwise each step looks its sample up by time, and reverse mode adds a
@@ -840,6 +845,7 @@ def _integrate(
     batch = q0.shape[:-1]
 
     if callable(omega):
+        check_callable(omega, "omega", "omega(t, q)", 2)
         out = jax.eval_shape(omega, t0, q0)
         shape = tuple(getattr(out, "shape", ()))
         if len(shape) == 0 or shape[-1] != 3:

@@ -10,6 +10,7 @@ Also here: input validation helpers that raise a `ValueError` at trace time nami
 
 from __future__ import annotations
 
+import inspect
 import operator
 from collections.abc import Callable, Sequence
 
@@ -131,6 +132,25 @@ def check_choice(value, choices: Sequence[str], name: str) -> str:
         expected = ", ".join(repr(c) for c in choices)
         raise ValueError(f"`{name}` must be one of {expected}; got {value!r}.")
     return value
+
+
+def check_callable(fn, name: str, call: str, num_args: int) -> None:
+    """Check that `fn` is callable with `num_args` positional arguments, as `call` (e.g.
+    "omega(t, q)"); a `ValueError` naming `name` otherwise. Callables whose signature Python cannot
+    read (some builtins) pass the arity check."""
+    if not callable(fn):
+        raise ValueError(f"`{name}` must be a callable {call}; got {type(fn).__name__}.")
+    try:
+        signature = inspect.signature(fn)
+    except (TypeError, ValueError):
+        return
+    try:
+        signature.bind(*([None] * num_args))
+    except TypeError:
+        raise ValueError(
+            f"`{name}` must be callable as {call} ({num_args} positional argument"
+            f"{'s' if num_args != 1 else ''}); its signature is {signature}."
+        ) from None
 
 
 def check_frame(frame) -> str:

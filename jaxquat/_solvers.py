@@ -49,6 +49,7 @@ from ._integrate import (
 from ._kinematics import corrected_rate, rate
 from ._numerics import (
     broadcasts_to,
+    check_callable,
     check_frame,
     check_trailing,
     cross,
@@ -132,6 +133,8 @@ def _make_field(omega, dt, frame) -> _KinematicField:
     frame = check_frame(frame)
     if callable(omega):
         takes_args = _takes_args(omega)
+        if not takes_args:
+            check_callable(omega, "omega", "omega(t, q) or omega(t, q, args)", 2)
     else:
         omega = check_trailing(omega, 3, "omega")
         takes_args = False

@@ -249,3 +249,71 @@ def test_mean_of_nothing_raises(shape, axis):
 def test_mean_empty_kept_axis_is_fine():
     assert jq.mean(jnp.ones((0, 2, 4)), axis=1).shape == (0, 4)
     np.testing.assert_allclose(jq.mean(Q), Q, atol=1e-12)
+
+
+# --- 5. callables with the wrong number of arguments ---------------------------------------------
+
+_I = jnp.array([1.0, 0.0, 0.0, 0.0])
+_INERTIA = jnp.array([1.0, 2.0, 3.0])
+
+
+@pytest.mark.parametrize(
+    "call, message",
+    [
+        (
+            lambda: jq.integrate(_I, lambda t: jnp.ones(3), 0.1, 2, method="magnus8"),
+            r"`omega` must be callable as omega\(t, q\) \(2 positional arguments\); its signature is \(t\)",
+        ),
+        (
+            lambda: jq.kinematic_vector_field(lambda t: jnp.ones(3)),
+            r"`omega` must be callable as omega\(t, q\) or omega\(t, q, args\)",
+        ),
+        (
+            lambda: jq.simulate_ensemble(_I[None], lambda t: jnp.ones(3), 0.1, 2),
+            r"`omega` must be callable as omega\(t, q\)",
+        ),
+        (
+            lambda: jq.simulate_ensemble(
+                _I[None], jnp.ones((1, 3)), 0.1, 2, inertia=_INERTIA, torque=lambda t, q: 0.0
+            ),
+            r"`torque` must be callable as torque\(t, q, omega\) \(3 positional arguments\)",
+        ),
+        (
+            lambda: jq.simulate_rigid_body(
+                _I, jnp.ones(3), _INERTIA, 0.1, 2, torque=lambda t, q: 0.0
+            ),
+            r"`torque` must be callable as torque\(t, q, omega\)",
+        ),
+        (
+            lambda: jq.rigid_body_vector_field(_INERTIA, torque=lambda t: 0.0),
+            r"`torque` must be callable as torque\(t, q, omega\)",
+        ),
+        (
+            lambda: jq.simulate_deformable_body(jnp.ones(2), lambda: jnp.zeros((2, 3)), _I, 0.1, 2),
+            r"`positions` must be callable as positions\(t\) \(1 positional argument\); its signature is \(\)",
+        ),
+    ],
+)
+def test_callables_of_the_wrong_arity_name_the_argument(call, message):
+    """A user function that cannot take the documented arguments is a ValueError naming it, at the
+    call, not a TypeError from inside the trace."""
+    with pytest.raises(ValueError, match=message):
+        call()
+
+
+@pytest.mark.parametrize(
+    "omega",
+    [
+        lambda t, q: jnp.ones(3),
+        lambda t, q=None: jnp.ones(3),
+        lambda *args: jnp.ones(3),
+        lambda t, q, extra=1.0, **kw: jnp.ones(3),
+        jq.sampled(jnp.ones((3, 3)), 0.1),
+    ],
+)
+def test_callables_that_accept_the_arguments_pass(omega):
+    np.testing.assert_allclose(
+        jq.integrate(_I, omega, 0.1, 2, save="final"),
+        jq.integrate(_I, jnp.ones(3), 0.1, 2, save="final"),
+        atol=1e-6,
+    )
