@@ -675,7 +675,8 @@ def _constant_final(q0, omega, h, frame, num_steps, renormalize_every, unroll):
     start = _split(q0, 4)
     if renormalize_every is not None and renormalize_every <= num_steps:
         start = _normalize(start)
-    turned = _act_soa(start, (jnp.zeros_like(vx), vx, vy, vz), frame)  # v ⊗ q₀ (world), q₀ ⊗ v (body)
+    # v ⊗ q₀ (world), q₀ ⊗ v (body)
+    turned = _act_soa(start, (jnp.zeros_like(vx), vx, vy, vz), frame)
     return _stack(tuple(a * s + b * t for s, t in zip(start, turned, strict=True)))
 
 

@@ -172,7 +172,8 @@ def test_top_eigenvector_and_its_derivative_with_degenerate_rest():
     assert np.all(np.isfinite(at_identity_like))
     h = 1e-6
 
-    def aligned(matrix):  # eigh's sign is arbitrary per call (and per LAPACK build): fix it to `top`'s
+    # eigh's sign is arbitrary per call (and per LAPACK build): fix it to `top`'s.
+    def aligned(matrix):
         v = np.asarray(nx.top_eigenvector(matrix))
         return np.sign(np.dot(v, top)) * v
 
