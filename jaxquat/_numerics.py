@@ -187,6 +187,17 @@ def sum_squares(x: Array, axis: int = -1, keepdims: bool = False) -> Array:
     return jnp.sum(x * x, axis=axis, keepdims=keepdims)
 
 
+def unit_vector(x: Array) -> Array:
+    """x/|x| along the last axis for vectors of any magnitude the dtype holds: x is first divided by its
+    largest |component|, so |x|² can neither overflow nor underflow (a float32 vector of length 1e20
+    or 1e-20 has a direction too). Value and derivative are those of x/|x| (the scale is held
+    constant: x/|x| does not depend on it); NaN for x = 0.
+    """
+    scale = jax.lax.stop_gradient(jnp.max(jnp.abs(x), axis=-1, keepdims=True))
+    x = x / scale
+    return x / jnp.sqrt(sum_squares(x, keepdims=True))
+
+
 def safe_norm(x: Array, axis: int = -1, keepdims: bool = False) -> Array:
     """Euclidean norm whose gradient at `x = 0` is 0 instead of NaN.
 

@@ -23,6 +23,7 @@ from ._numerics import (
     sinc_half,
     sum_squares,
     top_eigenvector,
+    unit_vector,
 )
 
 
@@ -200,6 +201,13 @@ def from_matrix(m: ArrayLike) -> Array:
         axis=-2,
     )
     q = top_eigenvector(k)
+    # One power step with K + I: for an exact rotation K + I = 4 q qᵀ (eigenvalues 3, −1, −1, −1 of K
+    # shifted to 4, 0, 0, 0), so the step rebuilds q from the matrix entries themselves — eigh alone
+    # drops components below ~ulp(1)/4 (float32: rotations under ~3e-8 rad came out as the identity).
+    # The eigenvector is a fixed point of the step, and the step's derivative at it is the
+    # eigenvector's, so derivatives are unchanged; trace K = 0 makes λ₁ + 1 ≥ 1 (no amplification).
+    q = jnp.einsum("...ij,...j->...i", k, q) + q
+    q = q / jnp.sqrt(sum_squares(q, keepdims=True))
     return jnp.where(q[..., :1] < 0, -q, q)
 
 
@@ -345,7 +353,8 @@ def from_two_vectors(a: ArrayLike, b: ArrayLike) -> Array:
 
     **Arguments:**
 
-    - `a`, `b`: non-zero vectors, shape `(..., 3)`, any lengths; leading axes broadcast.
+    - `a`, `b`: non-zero vectors, shape `(..., 3)`, any lengths the dtype holds (|a|² may overflow);
+      leading axes broadcast.
 
     **Returns:** unit quaternions (w ≥ 0), shape `(..., 4)`, with `rotate(a, q)` parallel to `b`.
 
@@ -355,8 +364,7 @@ def from_two_vectors(a: ArrayLike, b: ArrayLike) -> Array:
     a = check_trailing(a, 3, "a")
     b = check_trailing(b, 3, "b")
     a, b = broadcast_batch((a, 1, "a"), (b, 1, "b"))
-    a_unit = a / jnp.sqrt(sum_squares(a, keepdims=True))
-    b_unit = b / jnp.sqrt(sum_squares(b, keepdims=True))
+    a_unit, b_unit = unit_vector(a), unit_vector(b)
     cosine = jnp.sum(a_unit * b_unit, axis=-1, keepdims=True)
     c = cross(a_unit, b_unit)
     acute = cosine >= 0
@@ -375,5 +383,6 @@ def from_two_vectors(a: ArrayLike, b: ArrayLike) -> Array:
     fallback = fallback / jnp.sqrt(sum_squares(fallback, keepdims=True))
     axis = jnp.where(has_axis, c_perp / s, fallback)
     half = 0.5 * jnp.arctan2(jnp.where(has_axis, s, jnp.zeros_like(s)), cosine)
-    obtuse = jnp.concatenate([jnp.cos(half), jnp.sin(half) * axis], axis=-1)
+    # half ∈ [π/4, π/2]; cos(fl(π)/2) is −4e-8 in float32, so w is kept ≥ 0 as documented.
+    obtuse = jnp.concatenate([jnp.maximum(jnp.cos(half), 0.0), jnp.sin(half) * axis], axis=-1)
     return jnp.where(acute, bisector, obtuse)

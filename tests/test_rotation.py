@@ -407,3 +407,60 @@ def test_bad_frame_raises(frame):
         jq.rate(Q, np.zeros(3), frame=frame)
     with pytest.raises(ValueError, match=r"`frame` must be one of"):
         jq.step(Q, np.zeros(3), 0.1, frame=frame)
+
+
+@pytest.mark.parametrize(
+    "dtype, angles, tol",
+    [("float32", [1e-7, 3e-8, 1e-9, 1e-20], 1e-6), ("float64", [1e-16, 5e-17, 1e-30], 1e-14)],
+)
+def test_from_matrix_keeps_rotations_below_round_off_of_one(dtype, angles, tol):
+    """A rotation of 3e-8 rad has a float32 matrix that still carries it (m₂₁ − m₁₂ ≈ 2θ n_x), though
+    eigh alone returned the identity; SciPy recovers it, and so must we (relative error of the
+    rotation vector, against the generating one and SciPy's)."""
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    for angle in angles:
+        m = Rotation.from_rotvec(angle * axis).as_matrix().astype(dtype)
+        q = jq.from_matrix(jnp.asarray(m))
+        assert q.dtype == jnp.dtype(dtype)
+        r = np.asarray(jq.to_rotvec(q), dtype=np.float64)
+        scipy_r = Rotation.from_matrix(m.astype(np.float64)).as_rotvec()
+        assert np.linalg.norm(r - angle * axis) <= tol * angle
+        assert np.linalg.norm(r - scipy_r) <= tol * angle
+
+
+@pytest.mark.parametrize(
+    "dtype, scales", [("float32", [1e20, 1e-20, 1e30]), ("float64", [1e155, 1e-160, 1e300])]
+)
+def test_from_two_vectors_for_vectors_whose_squared_length_overflows(dtype, scales):
+    """|a|² overflows (or underflows) but a still has a direction: a quarter turn about z, unit."""
+    want = np.array([math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)])
+    for scale in scales:
+        for a, b in [([scale, 0.0, 0.0], [0.0, 1.0, 0.0]), ([1.0, 0.0, 0.0], [0.0, scale, 0.0])]:
+            q = jq.from_two_vectors(jnp.asarray(a, dtype), jnp.asarray(b, dtype))
+            np.testing.assert_allclose(np.asarray(q, np.float64), want, atol=1e-6)
+
+
+def test_from_two_vectors_derivative_is_that_of_the_directions():
+    """The overflow guard divides by the largest component; the derivative must still be the
+    directions' (checked against central differences on unnormalised inputs of several lengths)."""
+    a = jnp.array([0.3, -1.2, 0.5])
+    b = jnp.array([1.1, 0.4, -0.7])
+    for scale in [1e-3, 1.0, 1e4]:
+        f = lambda a: jq.from_two_vectors(a, b)  # noqa: E731
+        jac = np.asarray(jax.jacfwd(f)(scale * a))
+        np.testing.assert_allclose(np.asarray(jax.jacrev(f)(scale * a)), jac, atol=1e-12)
+        h = 1e-6 * scale
+        fd = np.stack(
+            [(f(scale * a + h * e) - f(scale * a - h * e)) / (2 * h) for e in np.eye(3)], -1
+        )
+        np.testing.assert_allclose(jac, fd, rtol=1e-7, atol=1e-9 / scale)
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_from_two_vectors_exactly_antiparallel_has_w_non_negative(dtype):
+    """cos(fl(π)/2) < 0 in float32: w must still be ≥ 0 (documented), the result a half-turn."""
+    for a in ([1.0, 0.0, 0.0], [0.0, 2.0, 0.0], [1.0, 2.0, 3.0]):
+        a = jnp.asarray(a, dtype)
+        q = jq.from_two_vectors(a, -a)
+        assert float(q[0]) >= 0.0
+        assert abs(float(jq.to_axis_angle(q)[1]) - math.pi) < 1e-6
