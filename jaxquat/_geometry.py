@@ -43,11 +43,18 @@ def angle_between(p: ArrayLike, q: ArrayLike) -> Array:
 
     **Gradient:** θ is a cone |δ| at p = q and has a ridge at θ = π; elsewhere smooth.
     At p = q exactly the gradient is 0 (the minimum-norm subgradient; safe norm, no NaN);
-    at θ = π the one-sided derivative of |w| is taken (sign of w, 0 at w = 0).
+    at θ = π the one-sided derivative of |w| is taken (sign of w, 0 at w = 0). Because θ itself is
+    not differentiable at p = q, neither is any function of it by the chain rule: `angle_between(p,
+    q)**2` has gradient 0 there but *Hessian 0* instead of 2·I. For a smooth squared angle (losses,
+    Newton steps, curvature at the optimum) use `jnp.sum(to_rotvec(multiply(conjugate(p), q))**2,
+    axis=-1)` with unit p, q: the same value, Hessian 2·I at p = q.
     """
     p = check_trailing(p, 4, "p")
     q = check_trailing(q, 4, "q")
     p, q = broadcast_batch((p, 1, "p"), (q, 1, "q"))
+    # Unit first: with |p| ≫ |q| the difference below would swamp q in rounding.
+    p = p / jnp.sqrt(sum_squares(p, keepdims=True))
+    q = q / jnp.sqrt(sum_squares(q, keepdims=True))
     w = jnp.sum(p * q, axis=-1)  # w(p* q) = ⟨p, q⟩
     # vec(p* q) = p_w q_v − q_w p_v − p_v × q_v, written in the difference d = ±q − p (sign of ⟨p, q⟩):
     # p_w d_v − d_w p_v − p_v × d_v. Exactly 0 when q = ±p (the product form is not, once the
@@ -184,7 +191,8 @@ def mean(
 
     **Arguments:**
 
-    - `q`: quaternions, shape `(..., 4)`.
+    - `q`: quaternions, shape `(..., 4)`; need not be unit (each is normalised first, as SciPy's
+      `Rotation` does, so a quaternion's length does not weight it).
     - `weights`: optional non-negative weights, broadcastable to `q.shape[:-1]` (not checked under
       `jit`: negative weights give a meaningless result).
     - `axis`: the batch axes to average over: `None` (all, SciPy's default), an int or a tuple. They
@@ -215,6 +223,7 @@ def mean(
             "at least one quaternion is needed to take a mean: the averaged axes "
             f"{axis} of `q` (shape {tuple(q.shape)}) are empty."
         )
+    q = q / jnp.sqrt(sum_squares(q, keepdims=True))
     outer = q[..., :, None] * q[..., None, :]
     if weights is not None:
         weights = as_float_array(weights, "weights")

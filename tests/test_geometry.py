@@ -274,3 +274,51 @@ def test_check_unit_passes_unit_and_rejects_others():
     np.testing.assert_array_equal(jq.check_unit(q32), q32)  # default atol √ε(float32)
     # Differentiable: the identity map.
     np.testing.assert_array_equal(jax.jacrev(lambda x: jq.check_unit(x))(q[0]), np.eye(4))
+
+
+@pytest.mark.parametrize("dtype, tol", [("float32", 1e-6), ("float64", 1e-14)])
+def test_angle_between_does_not_depend_on_the_inputs_lengths(dtype, tol):
+    """Scale-invariance in floating point: scaling one argument by 1e-12 … 1e16 (where ±q − p once
+    swamped the smaller one in rounding) leaves the angle at its float64 value of the unit inputs."""
+    rng = np.random.default_rng(5)
+    p = rng.normal(size=(200, 4))
+    q = rng.normal(size=(200, 4))
+    want = Rotation.from_quat(q[:, [1, 2, 3, 0]]) * Rotation.from_quat(p[:, [1, 2, 3, 0]]).inv()
+    want = want.magnitude()
+    for scale in [1e-12, 1e-3, 1.0, 1e3, 1e9, 1e16]:
+        for args in [(scale * p, q), (p, scale * q)]:
+            got = jq.angle_between(*(jnp.asarray(x, dtype) for x in args))
+            assert np.max(np.abs(np.asarray(got, np.float64) - want)) <= tol * 10
+
+
+def test_smooth_squared_angle_of_the_docstring_has_hessian_two_at_coincidence():
+    """angle_between's docstring sends users who need curvature at p = q to |to_rotvec(p* q)|²: its
+    Hessian in a rotation-vector perturbation is 2·I there (the squared angle |r|², exactly)."""
+    target = jq.from_rotvec(jnp.array([0.4, -0.2, 0.9]))
+
+    def squared(r):
+        q = jq.multiply(target, jq.from_rotvec(r))
+        return jnp.sum(jq.to_rotvec(jq.multiply(jq.conjugate(target), q)) ** 2)
+
+    for r in [jnp.zeros(3), jnp.array([1e-9, 0.0, 0.0]), jnp.array([0.3, 0.1, -0.2])]:
+        np.testing.assert_allclose(jax.hessian(squared)(r), 2.0 * np.eye(3), atol=1e-9)
+        # the angle itself, to the round-off of composing with `target` (absolute ~1e-16)
+        assert abs(float(jnp.sqrt(squared(r))) - float(jnp.linalg.norm(r))) <= 1e-15
+
+
+def test_mean_of_non_unit_quaternions_matches_scipy():
+    """SciPy normalises every input; a quaternion's length must not act as a weight."""
+    rng = np.random.default_rng(8)
+    q = rng.normal(size=(50, 4)) * rng.uniform(0.01, 100.0, size=(50, 1))
+    weights = rng.uniform(0.1, 1.0, size=50)
+    rotations = Rotation.from_quat(q[:, [1, 2, 3, 0]])
+    for w in [None, weights]:
+        want = rotations.mean(weights=w).as_quat()[[3, 0, 1, 2]]
+        got = jq.mean(jnp.asarray(q), None if w is None else jnp.asarray(w))
+        assert float(jq.angle_between(got, jnp.asarray(want))) < 1e-12
+    identity_and_scaled = jnp.stack(
+        [jq.identity(), 3.0 * jq.from_rotvec(jnp.array([0.0, 0.0, 1.0]))]
+    )
+    np.testing.assert_allclose(
+        jq.to_rotvec(jq.mean(identity_and_scaled)), [0.0, 0.0, 0.5], atol=1e-12
+    )
