@@ -577,15 +577,18 @@ def _sampled_final_jvp(series, frame, num_steps, renormalize_every, primals, tan
             renormalize_every,
         )
 
-    def matvec(x):
-        # I − M. The "0 ·" terms tie every slot to the primals, so that the primitive's rule for
-        # derivatives w.r.t. its constants gives every slot a tangent (it leaves slots without one
-        # as known zeros, which reverse over reverse cannot transpose).
+    def tie(a, primal):
+        # a · (1 + 0 · one entry of a primal): `a` unchanged and still linear, but tied to the primals,
+        # so that the primitive's rule for derivatives w.r.t. its constants gives the slot a tangent
+        # (it leaves slots without one as known zeros, which reverse over reverse cannot transpose).
+        # A product, not a sum: JAX derives the transposed map (vecmat) by transposing this one,
+        # which drops additive constants but keeps the factor (a loss linear in q_T failed).
+        return a * (1.0 + 0.0 * jnp.sum(primal.reshape(-1)[:1]).astype(a.dtype))
+
+    def matvec(x):  # I − M
         *inputs, out = x
-        tied = tuple(
-            a + 0.0 * primal[n].astype(a.dtype) for a, n in zip(inputs, names, strict=True)
-        )
-        return tied + (out - tangent_map(inputs) + 0.0 * q_final,)
+        tied = tuple(tie(a, primal[n]) for a, n in zip(inputs, names, strict=True))
+        return tied + (tie(out, q_final) - tangent_map(inputs),)
 
     def solve(_, b):  # (I − M)⁻¹ = I + M
         *inputs, out = b

@@ -124,6 +124,37 @@ def test_second_derivatives_match_a_naive_loop(getkey):
         np.testing.assert_allclose(value, expected, rtol=1e-12, err_msg=name)
 
 
+def test_reverse_over_reverse_of_a_loss_linear_in_the_final_state(getkey):
+    """A loss linear in q_T (one component, a fixed dot product) has a constant cotangent, which once
+    left the transposed linear map with an untied slot: reverse over reverse failed with an
+    AssertionError inside JAX. uᵀ H v w.r.t. the samples and d²/dΔt², by reverse over reverse, equal
+    the naive loop's."""
+    q0, samples = problem(getkey(), "series")
+    weights = jax.random.normal(getkey(), q0.shape)
+    u, v = jax.random.normal(getkey(), (2,) + samples.shape)
+
+    def fast(w, h):
+        return jq.integrate(q0, jq.sampled(w, DT), h, STEPS, save="final", renormalize_every=7)
+
+    losses = {
+        "one component": lambda final: lambda w, h: final(w, h)[0, 1],
+        "dot product": lambda final: lambda w, h: jnp.sum(weights * final(w, h)),
+    }
+    h = jnp.asarray(DT)
+    for name, loss in losses.items():
+        f = loss(fast)
+        reference = loss(lambda w, h: naive(q0, w, h, "world", 7))
+        expected = jnp.vdot(
+            u, jax.jvp(lambda w, r=reference: jax.grad(r)(w, h), (samples,), (v,))[1]
+        )
+        assert abs(float(expected)) > 1e-3
+        along = jax.grad(lambda w, f=f: jnp.vdot(u, jax.grad(f)(w, h)))(samples)
+        np.testing.assert_allclose(jnp.vdot(v, along), expected, rtol=1e-12, err_msg=name)
+        second = jax.grad(jax.grad(f, argnums=1), argnums=1)(samples, h)
+        want = jax.grad(jax.grad(reference, argnums=1), argnums=1)(samples, h)
+        np.testing.assert_allclose(second, want, rtol=1e-12, err_msg=name)
+
+
 @pytest.mark.parametrize("save", ["final", "all"])
 def test_empty_batch_and_non_finite_samples(save):
     """No bodies: an empty result of the right shape (as with a constant or callable ω), not an error
