@@ -242,10 +242,11 @@ def _apply_inertia(
     inertia: Array, vector: Array, names: tuple[str, str] = ("inertia", "vector")
 ) -> Array:
     """I v for a `(..., 3, 3)` matrix or principal moments `(..., 3)`; `names` for error messages."""
-    inertia, vector = broadcast_batch(
-        (inertia, _inertia_rank(inertia), names[0]), (vector, 1, names[1])
-    )
-    if _is_matrix(inertia):
+    # Which it is must be read before broadcasting: moments (3,) against three vectors (3, 3) would
+    # broadcast to (3, 3) and then look like a matrix.
+    matrix = _is_matrix(inertia)
+    inertia, vector = broadcast_batch((inertia, 2 if matrix else 1, names[0]), (vector, 1, names[1]))
+    if matrix:
         return jnp.sum(inertia * vector[..., None, :], axis=-1)
     return inertia * vector
 
@@ -413,7 +414,9 @@ def simulate_rigid_body(
         check_callable(torque, "torque", "torque(t, q, omega)", 3)
     dtype = q0.dtype  # the orientation's dtype governs, as in `integrate`
     q0, omega0, inertia = q0.astype(dtype), omega0.astype(dtype), inertia.astype(dtype)
-    q0, omega0, inertia = broadcast_batch(
+    # The inertia keeps its own shape (it broadcasts in the arithmetic): broadcast to a batch of
+    # three bodies, shared moments (3,) would become (3, 3) and be read as a matrix.
+    q0, omega0, _ = broadcast_batch(
         (q0, 1, "q0"), (omega0, 1, "omega0"), (inertia, _inertia_rank(inertia), "inertia")
     )
     dt = _check_scalar(dt, "dt").astype(dtype)

@@ -5,6 +5,8 @@ The torque-free asymmetric top is compared with an independent reference written
 satisfy Euler's equations and the kinematics by finite differences before it is used.
 """
 
+import functools
+
 import diffrax
 import jax
 import jax.numpy as jnp
@@ -930,3 +932,40 @@ def test_transformations(function, make_args, getkey):
         jax.vmap(function)(*stacked), jnp.stack(eager), rtol=1e-13, atol=1e-14
     )
     check_grads(jax.jit(function), batches[0], order=1, modes=("fwd", "rev"), eps=1e-6)
+
+
+# --- shared principal moments and a batch of three bodies ---------------------------------------
+
+
+@pytest.mark.parametrize("batch", [(3,), (2, 3), (3, 1)])
+def test_shared_moments_with_a_batch_of_three_bodies(batch):
+    """Shared moments (3,) broadcast against three bodies became (3, 3) inside the library and were
+    read as an inertia matrix (singular: NaN from simulate_rigid_body, wrong ω̇ from euler_equations).
+    Every entry point must equal the body-by-body result."""
+    moments = jnp.array([1.0, 2.0, 3.0])
+    key_q, key_w = jax.random.split(jax.random.key(3))
+    q0 = jq.random(key_q, batch)
+    omega = 0.7 * jax.random.normal(key_w, batch + (3,))
+    flat_q, flat_w = q0.reshape(-1, 4), omega.reshape(-1, 3)
+
+    def per_body(f):
+        return jnp.stack([f(q, w) for q, w in zip(flat_q, flat_w, strict=True)])
+
+    def close(got, want):
+        np.testing.assert_allclose(got.reshape(want.shape), want, rtol=1e-12, atol=1e-13)
+
+    close(jq.euler_equations(omega, moments), per_body(lambda q, w: jq.euler_equations(w, moments)))
+    close(jq.kinetic_energy(omega, moments), per_body(lambda q, w: jq.kinetic_energy(w, moments)))
+    run = functools.partial(jq.simulate_rigid_body, dt=0.01, num_steps=20, save="final")
+    qs, ws = run(q0, omega, moments)
+    close(qs, per_body(lambda q, w: run(q, w, moments)[0]))
+    close(ws, per_body(lambda q, w: run(q, w, moments)[1]))
+    field = jq.rigid_body_vector_field(moments)
+    q_dot, w_dot = field(0.0, (q0, omega), None)
+    close(q_dot, per_body(lambda q, w: field(0.0, (q, w), None)[0]))
+    close(w_dot, per_body(lambda q, w: field(0.0, (q, w), None)[1]))
+    if len(batch) == 1:
+        result = jq.simulate_ensemble(q0, omega, 0.01, 20, inertia=moments, frame="body")
+        close(result.final, per_body(lambda q, w: run(q, w, moments)[0]))
+    # A (3, 3) the caller passes is still a matrix: diag(1, 2, 3) gives the moments' result.
+    close(run(q0, omega, jnp.diag(moments))[0], qs.reshape(-1, 4))
