@@ -803,17 +803,14 @@ def _integrate_fast(
             )
         return _constant_final(q0, omega, h, frame, num_steps, renormalize_every, unroll)
 
-    # Step k uses sample indices[k], found by the module's own zero-order-hold rule applied to a probe
-    # whose k-th sample is k: on the integration grid indices[k] = k, off it the same loop reads the
-    # held samples (no gathered copy of the samples either way).
-    times = t0.astype(time_dtype) + jnp.arange(num_steps, dtype=time_dtype) * dt.astype(time_dtype)
+    # Step k uses sample indices[k], by the module's own zero-order-hold rule at the step's start, timed
+    # from the first sample (small offsets, not large absolute times; a backward step holds the sample
+    # before its start): on the integration grid indices[k] = k, off it the same loop reads the held
+    # samples (no gathered copy of the samples either way).
+    shift = t0.astype(time_dtype) - jnp.asarray(omega.t0).astype(time_dtype)
+    offsets = shift + jnp.arange(num_steps, dtype=time_dtype) * dt.astype(time_dtype)
+    indices = omega._index(offsets, jnp.abs(offsets) + jnp.abs(shift), dt < 0)
     length = omega.omegas.shape[0]
-    probe = eqx.tree_at(
-        lambda source: source.omegas,
-        omega,
-        jnp.broadcast_to(jnp.arange(length, dtype=time_dtype)[:, None], (length, 3)),
-    )
-    indices = jax.vmap(lambda t: probe(t)[0])(times).astype(jnp.int32)
     # (L, *sample batch, 3) against the bodies' batch: align the batch axes from the right, never
     # the time axis (a plain broadcast_to would pair L with the first body axis).
     samples = omega.omegas

@@ -557,14 +557,33 @@ class Sampled(eqx.Module):
     def __call__(self, t, q=None) -> Array:
         """ω at time `t`, shape `omegas.shape[1:]` (`q` is ignored)."""
         t = jnp.asarray(t)
-        s = (t - self.t0) / self.dt
-        # Times computed as t0 + k·Δt can land a few ulp short of the k-th boundary: count times within
-        # a round-off margin before a boundary as after it.
-        eps = float(jnp.finfo(s.dtype).eps)
-        margin = 8.0 * eps * (1.0 + (jnp.abs(t) + jnp.abs(self.t0)) / jnp.abs(self.dt))
-        index = jnp.floor(s + margin)
-        index = jnp.clip(index, 0, self.omegas.shape[0] - 1).astype(jnp.int32)
+        index = self._index(t - self.t0, jnp.abs(t) + jnp.abs(self.t0), False)
         return lax.dynamic_index_in_dim(self.omegas, index, axis=0, keepdims=False)
+
+    def _index(self, offset, scale, backward) -> Array:
+        """The sample index at `offset` = t − t0 (int32, clipped to the samples), `scale` bounding the
+        magnitudes of the times it was computed from. A time t0 + kΔt formed in floating point misses
+        the k-th boundary by up to ~3 ε·scale/Δt samples (measured: 1.9 for t0 + kΔt, 3.0 for diffrax's
+        t0 + (t1 − t0)·k/n), so a time within 4 ε(1 + scale/Δt) samples of a boundary counts as on it.
+        Forwards a boundary belongs to the interval after it; `backward` (a step going back in time, a
+        bool or traced bool) gives it to the interval before, the one that step crosses, so the
+        Lie–Euler step at the start of a backward step holds the sample it undoes."""
+        s = offset / self.dt
+        eps = float(jnp.finfo(s.dtype).eps)
+        margin = 4.0 * eps * (1.0 + scale / jnp.abs(self.dt))
+        index = jnp.where(backward, jnp.ceil(s - margin) - 1.0, jnp.floor(s + margin))
+        return jnp.clip(index, 0, self.omegas.shape[0] - 1).astype(jnp.int32)
+
+    def _relative(self, shift, backward) -> Callable:
+        """ω(τ, q) at the offset τ = t − t0 from the first sample, for integrators that form their times
+        as `shift + k·h` (shift = their t0 − this t0): the lookup then carries the round-off of small
+        offsets, not of large absolute times (float32 at t ≈ 10³ s resolves only ~6e-5 s)."""
+
+        def omega(offset, q=None):
+            index = self._index(offset, jnp.abs(offset) + jnp.abs(shift), backward)
+            return lax.dynamic_index_in_dim(self.omegas, index, axis=0, keepdims=False)
+
+        return omega
 
 
 def sampled(omegas: ArrayLike, dt: ArrayLike, *, t0: ArrayLike = 0.0) -> Sampled:
@@ -584,6 +603,16 @@ def sampled(omegas: ArrayLike, dt: ArrayLike, *, t0: ArrayLike = 0.0) -> Sampled
     Before `t0` the first sample is held and after the last interval the last one, so a run longer
     than the samples keeps turning at the last sampled ω (check `omegas.shape[0] >= num_steps` if that
     would be a mistake in your data).
+
+    **Backwards and large times.** `integrate` with `dt < 0` holds, at each step's start, the sample of
+    the interval the step crosses (the one before the boundary), so a backward Euler run undoes the
+    forward one exactly. `integrate` also looks samples up by the time since `t0` (the step number
+    times `dt`), not by absolute time, so float32 runs at large t stay exact. Called directly —
+    `source(t)`, or by a diffrax solver — the module sees only the absolute time: a boundary belongs to
+    the interval after it, and in float32 at |t| ≈ 10³ s times resolve only ~6e-5 s (samples then
+    switch up to ~4 ε|t| early). With diffrax, integrate backwards over held samples with a solver whose
+    stages are interior (`ExpMidpoint`, `Magnus4/6/8`), not `LieEuler`, and count time from the first
+    sample (`t0=0`) in float32.
 
     **Reverse mode.** When `integrate` runs on the sampling grid (its `dt` and `t0` equal these, as
     Python numbers or concrete arrays), the samples are scanned over as per-step inputs and the gradient
@@ -858,6 +887,11 @@ def _integrate(
                 "ω(t) (it is evaluated at the Gauss points with q frozen); use 'cf4' or 'midpoint'."
             )
         source = omega
+        if isinstance(omega, Sampled):
+            # Times relative to the first sample (see `Sampled._relative`): `time(k)` below.
+            shift = t0 - jnp.asarray(omega.t0).astype(time_dtype)
+            source = omega._relative(shift, dt < 0)
+            t0 = shift
     else:
         batch = _broadcast_shapes(batch, omega.shape[:-1], "omega", tuple(omega.shape))
         q0 = jnp.broadcast_to(q0, batch + (4,))

@@ -6,6 +6,7 @@ References: per-step closed forms of every method for constant ω, a closed-form
 composition, stability polynomials of the Runge–Kutta schemes, and central finite differences.
 """
 
+import functools
 import os
 import subprocess
 import sys
@@ -203,6 +204,61 @@ def test_piecewise_constant_sampled_omega_is_exact(frame, getkey):
         qs = jq.integrate(q0, source, dt, steps, frame=frame, method=method, t0=t0)
         assert qs.shape == (steps + 1, 2, 4)
         assert_quat_close(qs, trajectory, atol=1e-12)
+
+
+@pytest.mark.parametrize("frame", ["world", "body"])
+def test_sampled_omega_integrated_backwards_undoes_the_forward_run(frame, getkey):
+    """Backwards (dt < 0) a step starts at the later end of its interval, where the zero-order hold
+    forwards already holds the next sample: the step must hold the sample of the interval it crosses.
+    Euler (fast path, and the general scan via save_every), the interior-stage methods, sub-steps of a
+    sample and a traced dt all return exactly to q₀, and each backward step is the inverse rotation."""
+    samples, ds = 6, 0.5
+    omegas = 2.0 * jax.random.normal(getkey(), (samples, 3))
+    q0 = random_unit(getkey(), ())
+    source = jq.sampled(omegas, ds, t0=2.0)
+    t_end = 2.0 + samples * ds
+    for per_sample in [1, 3]:
+        h, n = ds / per_sample, samples * per_sample
+        q_end = jq.integrate(q0, source, h, n, frame=frame, t0=2.0, save="final")
+        expected = Rotation.from_quat(np.asarray(jq.to_xyzw(q0)))
+        for k in range(samples):  # the closed form of the forward run
+            r = Rotation.from_rotvec(np.asarray(omegas[k]) * ds)
+            expected = r * expected if frame == "world" else expected * r
+        assert_quat_close(jq.to_xyzw(q_end), expected.as_quat(), atol=1e-13)
+        for method, save_every in [("euler", 1), ("euler", 2), ("midpoint", 1), ("magnus4", 1)]:
+            back = jq.integrate(
+                q_end, source, -h, n, frame=frame, t0=t_end, method=method, save_every=save_every
+            )
+            assert_quat_close(back[-1], q0, atol=1e-13)
+        backward = functools.partial(jq.integrate, frame=frame, t0=t_end, save="final")
+        traced = jax.jit(backward, static_argnums=3)(q_end, source, -jnp.asarray(h), n)
+        assert_quat_close(traced, q0, atol=1e-13)
+
+
+def test_sampled_float32_lookup_at_large_times():
+    """float32 times near 10³ s resolve ~6e-5 s; looking samples up by absolute time put Magnus8's
+    outer Gauss node (6.9% of a step before the boundary) in the next sample (4e-3 rad wrong) and
+    mis-held fine sub-steps. `integrate` looks samples up relative to the first one: every method,
+    on and off the grid and with traced steps, is exact to float32 round-off against float64 SciPy."""
+    rng = np.random.default_rng(4)
+    samples, ds, t0 = 200, np.float32(0.01), np.float32(1000.0)
+    omegas = rng.normal(0.0, 1.0, (samples, 3)).astype(np.float32)
+    q0 = jnp.array([1.0, 0.0, 0.0, 0.0], jnp.float32)
+    expected = Rotation.identity()
+    for k in range(samples):
+        expected = Rotation.from_rotvec(omegas[k].astype(np.float64) * float(ds)) * expected
+    expected = expected.as_quat()
+    source = jq.sampled(jnp.asarray(omegas), jnp.asarray(ds), t0=jnp.asarray(t0))
+
+    def run(h, n, method):
+        return jq.integrate(q0, source, h, n, t0=jnp.asarray(t0), method=method, save="final")
+
+    for method in ["euler", "midpoint", "magnus4", "magnus6", "magnus8"]:
+        q = jax.jit(run, static_argnums=(1, 2))(jnp.asarray(ds), samples, method)
+        assert q.dtype == jnp.float32
+        assert quat_distance(jq.to_xyzw(q), expected) < 2e-6, method
+    q = jax.jit(run, static_argnums=(1, 2))(jnp.asarray(ds / np.float32(50)), 50 * samples, "euler")
+    assert quat_distance(jq.to_xyzw(q), expected) < 2e-5
 
 
 # ----------------------------------------------------------------------------------------------------
