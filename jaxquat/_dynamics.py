@@ -245,7 +245,9 @@ def _apply_inertia(
     # Which it is must be read before broadcasting: moments (3,) against three vectors (3, 3) would
     # broadcast to (3, 3) and then look like a matrix.
     matrix = _is_matrix(inertia)
-    inertia, vector = broadcast_batch((inertia, 2 if matrix else 1, names[0]), (vector, 1, names[1]))
+    inertia, vector = broadcast_batch(
+        (inertia, 2 if matrix else 1, names[0]), (vector, 1, names[1])
+    )
     if matrix:
         return jnp.sum(inertia * vector[..., None, :], axis=-1)
     return inertia * vector
