@@ -43,6 +43,7 @@ from ._integrate import (
     _GL4_SPREAD,
     _STAGE_FRACTIONS,
     _check_scalar,
+    _depends_on_q,
     magnus6_exponent,
     magnus8_exponent,
 )
@@ -606,6 +607,17 @@ class CF4(diffrax.AbstractSolver):
         return y1, None, _dense_info(y0, treedef, qc, xcs), f_end, diffrax.RESULTS.successful
 
 
+def _kinematic_field_of(terms) -> _KinematicField | None:
+    """jaxquat's own kinematic field inside `terms` (an `ODETerm`, possibly wrapped by diffrax, e.g.
+    to integrate backwards), or `None` for any other term (whose ω the solver cannot see)."""
+    for _ in range(8):
+        if isinstance(terms, diffrax.ODETerm):
+            field = terms.vector_field
+            return field if isinstance(field, _KinematicField) else None
+        terms = getattr(terms, "term", None)
+    return None
+
+
 class _Magnus(diffrax.AbstractSolver):
     """What `Magnus4`, `Magnus6` and `Magnus8` share: the frame, the state checks, and the stage rates
     uᵢ = 2 vec(h q̇ᵢ ⊗ q_n*) (world) or 2 vec(q_n* ⊗ h q̇ᵢ) (body) at the Gauss points, with q frozen."""
@@ -619,7 +631,18 @@ class _Magnus(diffrax.AbstractSolver):
         check_frame(self.frame)
 
     def init(self, terms, t0, t1, y0, args):
-        self._split(y0)
+        q0, _, _ = self._split(y0)
+        field = _kinematic_field_of(terms)
+        if field is not None and callable(field.omega):
+            omega = field.omega
+            if field.omega_takes_args:
+                omega = lambda t, q: field.omega(t, q, args)  # noqa: E731
+            if _depends_on_q(omega, t0, q0):
+                raise ValueError(
+                    f"`omega` depends on q, but {type(self).__name__} needs a q-independent angular "
+                    "velocity ω(t) (it is evaluated at the Gauss points with q frozen: order 2 "
+                    "at best); use CF4 or RKMK45."
+                )
         return None
 
     def func(self, terms, t0, y0, args):
