@@ -875,6 +875,11 @@ def _integrate(
 
     if callable(omega):
         check_callable(omega, "omega", "omega(t, q)", 2)
+        user_omega = omega
+
+        def omega(t, q):  # a list is an array (as for the diffrax fields), a string is an error
+            return as_float_array(user_omega(t, q), "omega(t, q)")
+
         out = jax.eval_shape(omega, t0, q0)
         shape = tuple(getattr(out, "shape", ()))
         if len(shape) == 0 or shape[-1] != 3:
@@ -887,10 +892,10 @@ def _integrate(
                 "ω(t) (it is evaluated at the Gauss points with q frozen); use 'cf4' or 'midpoint'."
             )
         source = omega
-        if isinstance(omega, Sampled):
+        if isinstance(user_omega, Sampled):
             # Times relative to the first sample (see `Sampled._relative`): `time(k)` below.
-            shift = t0 - jnp.asarray(omega.t0).astype(time_dtype)
-            source = omega._relative(shift, dt < 0)
+            shift = t0 - jnp.asarray(user_omega.t0).astype(time_dtype)
+            source = user_omega._relative(shift, dt < 0)
             t0 = shift
     else:
         batch = _broadcast_shapes(batch, omega.shape[:-1], "omega", tuple(omega.shape))
@@ -905,7 +910,7 @@ def _integrate(
     if aligned:
         # Step k holds sample k on [t_k, t_{k+1}); a stage at the step end (c = 1) sees sample k + 1,
         # exactly as the time lookup of `Sampled.__call__` would; beyond the last sample it is held.
-        rows = omega.omegas.astype(state_dtype)
+        rows = user_omega.omegas.astype(state_dtype)
         index = np.minimum(np.arange(num_steps + 1), rows.shape[0] - 1)
         fractions = _STAGE_FRACTIONS[method]
         xs = (rows[index[:-1]], rows[index[1:]] if 1.0 in fractions else None)

@@ -317,3 +317,15 @@ def test_callables_that_accept_the_arguments_pass(omega):
         jq.integrate(_I, jnp.ones(3), 0.1, 2, save="final"),
         atol=1e-6,
     )
+
+
+@pytest.mark.parametrize("method", ["euler", "magnus4", "cf4"])
+def test_omega_returning_a_list_is_an_array_and_a_string_is_an_error(method):
+    """What the diffrax fields accept, integrate accepts: a list from omega(t, q) is an array (it was
+    refused as "shape ()"); a non-numeric result is a ValueError naming omega(t, q), not JAX's
+    TypeError from inside the trace."""
+    want = jq.integrate(_I, jnp.array([0.0, 0.0, 1.0]), 0.1, 5, save="final", method=method)
+    got = jq.integrate(_I, lambda t, q: [0.0, 0.0, 1.0], 0.1, 5, save="final", method=method)
+    np.testing.assert_allclose(got, want, atol=1e-15)
+    with pytest.raises(ValueError, match=r"`omega\(t, q\)` must be an array of numbers; got str"):
+        jq.integrate(_I, lambda t, q: "abc", 0.1, 5, method=method)
