@@ -407,7 +407,13 @@ def load_ensemble(path: str | os.PathLike) -> dict[str, Any]:
     - `"complete"`: whether the run finished; `"steps_done"`: steps completed;
     - after a complete run also `"final"`, `"final_omega"`, `"angle_from_start"` and, if computed,
       `"total_angle"` and `"max_angle_from_start"`;
+    - `"finite"`: whether every array read is free of NaN and infinity (a run that overflowed, with
+      too large a `dt` for instance, is written as it ended: check this before using the results);
     - `"metadata"`: the run's parameters (method, frame, dt, …).
+
+    A directory that is not such a run, or one whose index or files are damaged or inconsistent
+    (an index from another format version, a complete run lacking states or final arrays, saved
+    times that overflow), is a `ValueError` naming the file and the problem.
     """
     if not isinstance(path, (str, os.PathLike)):
         raise ValueError(
@@ -429,7 +435,17 @@ def load_ensemble(path: str | os.PathLike) -> dict[str, Any]:
         return _read_ensemble(path, index_path)
     except _MalformedEnsemble as e:
         raise ValueError(f"`path` {path!r}: {e}") from None
-    except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError) as e:
+    except (
+        OSError,
+        ValueError,
+        KeyError,
+        TypeError,
+        IndexError,
+        AttributeError,
+        EOFError,
+        OverflowError,
+        RecursionError,
+    ) as e:
         # A truncated or edited index or data file: one clear error, never a partial result.
         raise ValueError(
             f"`path` {path!r}: malformed jaxquat ensemble ({type(e).__name__}: {e})."
@@ -440,13 +456,20 @@ class _MalformedEnsemble(Exception):
     pass
 
 
-def _index_int(index: dict, key: str, *, minimum: int = 0, optional: bool = False) -> int | None:
+def _index_int(
+    index: dict, key: str, *, minimum: int = 0, steps: bool = False, optional: bool = False
+) -> int | None:
+    """An integer >= `minimum`; a step count (`steps`) at most 2**31 - 1, as the writer's counter."""
     value = index.get(key) if optional else index[key]
     if optional and value is None:
         return None
     if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
         raise _MalformedEnsemble(
             f"index.json: {key} must be an integer >= {minimum}, got {value!r}."
+        )
+    if steps and value > _MAX_STEPS:
+        raise _MalformedEnsemble(
+            f"index.json: {key} must be at most 2**31 - 1 = {_MAX_STEPS}, got {value}."
         )
     return value
 
@@ -488,12 +511,77 @@ def _data_file(path: str, name, where: str) -> str:
     return os.path.join(path, name)
 
 
+def _load_array(path: str, name, where: str) -> np.ndarray:
+    """The array in the data file `name` (see `_data_file`); an unreadable file is named."""
+    filename = _data_file(path, name, where)
+    try:
+        return np.load(filename, allow_pickle=False)
+    except FileNotFoundError:
+        raise _MalformedEnsemble(
+            f"malformed jaxquat ensemble: {name}, {where}, is missing."
+        ) from None
+    except (OSError, ValueError, EOFError) as e:  # EOFError: an empty (zero-length) file
+        raise _MalformedEnsemble(
+            f"malformed jaxquat ensemble: {name}, {where}, is not a readable .npy file "
+            f"({type(e).__name__}: {e})."
+        ) from None
+
+
+# What the writer's `finish` always writes (`total_angle`, `max_angle_from_start` with statistics).
+_FINAL_ALWAYS = ("final", "final_omega", "angle_from_start")
+
+
+def _check_complete(
+    steps: list[int], final: dict, steps_done: int, save_every: int | None, known: bool
+) -> None:
+    """A complete run has what its writer wrote: every saved state and the final arrays.
+
+    With `save_every` the writer records the initial state and then each chunk's states, so a
+    complete run holds steps 0, save_every, 2·save_every, … up to steps_done; without it, none.
+    `known`: whether the index says `save_every` at all (every writer so far has).
+    """
+    missing = [key for key in _FINAL_ALWAYS if key not in final]
+    if missing:
+        raise _MalformedEnsemble(
+            f"index.json: complete, but final lacks {', '.join(missing)} (the writer saves "
+            "them when the run completes)."
+        )
+    if not known:
+        return
+    expected = list(range(0, steps_done + 1, save_every)) if save_every else []
+    if len(steps) != len(expected):
+        raise _MalformedEnsemble(
+            f"index.json: complete, but its records hold {len(steps)} saved states where "
+            f"save_every {save_every} and steps_done {steps_done} make {len(expected)}."
+        )
+    for step, due in zip(steps, expected, strict=True):
+        if step != due:
+            raise _MalformedEnsemble(
+                f"index.json: complete, but saved step {step} is not step {due} (every "
+                f"save_every {save_every} steps from 0)."
+            )
+
+
 def _read_ensemble(path: str, index_path: str) -> dict[str, Any]:
-    with open(index_path, encoding="utf-8") as f:
-        index = json.load(f)
+    try:
+        with open(index_path, encoding="utf-8") as f:
+            index = json.load(f)
+    except RecursionError:  # the JSON decoder recurses once per level of nesting
+        raise _MalformedEnsemble(
+            "index.json is nested too deeply to be a jaxquat ensemble index."
+        ) from None
+    except ValueError as e:  # not JSON, or not UTF-8
+        raise _MalformedEnsemble(
+            f"index.json is not valid JSON ({type(e).__name__}: {e})."
+        ) from None
     if not isinstance(index, dict) or index.get("format") != _FORMAT:
         raise _MalformedEnsemble(
             "index.json is not a jaxquat ensemble index (not a jaxquat ensemble)."
+        )
+    if index.get("version") != _FORMAT_VERSION:
+        raise _MalformedEnsemble(
+            f"index.json: format version {index.get('version')!r} is not one this jaxquat reads "
+            f"(version {_FORMAT_VERSION})."
         )
     shape = index["batch_shape"]
     if not isinstance(shape, list) or any(
@@ -512,9 +600,9 @@ def _read_ensemble(path: str, index_path: str) -> dict[str, Any]:
     complete = _index_bool(index, "complete")
     t0 = _index_float(index, "t0")
     dt = _index_float(index, "dt")
-    num_steps = _index_int(index, "num_steps") if "num_steps" in index else None
-    steps_done = _index_int(index, "steps_done")
-    _index_int(index, "save_every", minimum=1, optional=True)
+    num_steps = _index_int(index, "num_steps", steps=True) if "num_steps" in index else None
+    steps_done = _index_int(index, "steps_done", steps=True)
+    save_every = _index_int(index, "save_every", minimum=1, optional=True)
     if num_steps is not None and steps_done > num_steps:
         raise _MalformedEnsemble(
             f"index.json: steps_done {steps_done} exceeds num_steps {num_steps}."
@@ -543,26 +631,6 @@ def _read_ensemble(path: str, index_path: str) -> dict[str, Any]:
             f"index.json: saved steps must increase and not exceed steps_done {steps_done}, "
             f"got {steps!r}."
         )
-    out: dict[str, Any] = {}
-    widths = {"states": 4, "omegas": 3} if dynamic else {"states": 4}
-    for key, width in widths.items():
-        parts = []
-        for number, record in enumerate(records):
-            name = record["files"][key]
-            filename = _data_file(path, name, f"record {number} ({key})")
-            part = np.load(filename, allow_pickle=False)
-            expected = (len(record["steps"]),) + batch + (width,)
-            if part.shape != expected or part.dtype != dtype:
-                raise _MalformedEnsemble(
-                    f"{name} (record {number}) holds {part.dtype}{list(part.shape)}, the index says "
-                    f"{dtype}{list(expected)}."
-                )
-            parts.append(part)
-        out[key] = (
-            np.concatenate(parts, axis=0) if parts else np.zeros((0,) + batch + (width,), dtype)
-        )
-    out["steps"] = np.asarray(steps, dtype=np.int64)
-    out["times"] = t0 + dt * out["steps"].astype(np.float64)
     final = index.get("final", {})
     if not isinstance(final, dict):
         raise _MalformedEnsemble(f"index.json: final must be a table of files, got {final!r}.")
@@ -573,20 +641,52 @@ def _read_ensemble(path: str, index_path: str) -> dict[str, Any]:
         "total_angle": batch,
         "max_angle_from_start": batch,
     }
-    for key, name in final.items():
+    for key in final:
         if key not in final_shapes:
             raise _MalformedEnsemble(
                 f"index.json: unknown final array {key!r} (known: {', '.join(final_shapes)})."
             )
-        part = np.load(_data_file(path, name, f"final ({key})"), allow_pickle=False)
+    if complete:
+        _check_complete(steps, final, steps_done, save_every, "save_every" in index)
+    out: dict[str, Any] = {"steps": np.asarray(steps, dtype=np.int64)}
+    with np.errstate(over="ignore", invalid="ignore"):
+        out["times"] = t0 + dt * out["steps"].astype(np.float64)
+    if not np.all(np.isfinite(out["times"])):
+        first = int(np.argmin(np.isfinite(out["times"])))
+        raise _MalformedEnsemble(
+            f"index.json: the time t0 + k·dt of saved step k = {steps[first]} is not finite "
+            f"(t0 {t0!r}, dt {dt!r})."
+        )
+    finite = True
+    widths = {"states": 4, "omegas": 3} if dynamic else {"states": 4}
+    for key, width in widths.items():
+        parts = []
+        for number, record in enumerate(records):
+            name = record["files"][key]
+            part = _load_array(path, name, f"record {number} ({key})")
+            expected = (len(record["steps"]),) + batch + (width,)
+            if part.shape != expected or part.dtype != dtype:
+                raise _MalformedEnsemble(
+                    f"{name} (record {number}) holds {part.dtype}{list(part.shape)}, the index says "
+                    f"{dtype}{list(expected)}."
+                )
+            finite = finite and bool(np.isfinite(part).all())  # one chunk's temporary at a time
+            parts.append(part)
+        out[key] = (
+            np.concatenate(parts, axis=0) if parts else np.zeros((0,) + batch + (width,), dtype)
+        )
+    for key, name in final.items():
+        part = _load_array(path, name, f"final ({key})")
         if part.shape != final_shapes[key] or part.dtype != dtype:
             raise _MalformedEnsemble(
                 f"{name} ({key}) holds {part.dtype}{list(part.shape)}, the index says "
                 f"{dtype}{list(final_shapes[key])}."
             )
+        finite = finite and bool(np.isfinite(part).all())
         out[key] = part
     out["complete"] = complete
     out["steps_done"] = steps_done
+    out["finite"] = finite
     out["metadata"] = {k: v for k, v in index.items() if k not in ("records", "final")}
     return out
 
