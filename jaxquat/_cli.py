@@ -22,7 +22,7 @@ import sys
 import time
 import warnings
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NoReturn
 
 _PROG = "jaxquat"
 _DTYPES = ("float32", "float64")
@@ -36,11 +36,27 @@ class CommandLineError(Exception):
         self.prog = prog
 
 
+class _Interrupted(KeyboardInterrupt):
+    """Ctrl-C during a command, with what the command left behind (said after "interrupted")."""
+
+
 class _Parser(argparse.ArgumentParser):
     """An `ArgumentParser` whose errors become one-line `CommandLineError`s instead of usage + exit."""
 
     def error(self, message: str):  # noqa: D102 (argparse's signature)
         raise CommandLineError(message, prog=self.prog)
+
+
+class _Once(argparse.Action):
+    """Store an option that may be given only once (argparse's default keeps the last silently)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        previous = getattr(namespace, self.dest, None)
+        if previous is not None:
+            raise argparse.ArgumentError(
+                self, f"may be given only once, got {previous!r} and then {values!r}"
+            )
+        setattr(namespace, self.dest, values)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -77,6 +93,22 @@ def _step_count(text: str) -> int:
     value = _positive_int(text)
     if value > _STEPS_MAX:
         raise argparse.ArgumentTypeError(f"must be at most 2**31 - 1 = {_STEPS_MAX}, got {value}")
+    return value
+
+
+# The CLI draws the whole ensemble on one device, at 100 bytes a body in float32 (q0 and ω, 28, and
+# the random bits they are drawn from, 72), so 2**40 bodies already need 110 TB: more than any machine
+# holds. Counts up to the bound fail cleanly with "out of memory" (exit 2) where they do not fit; far
+# beyond it XLA aborts the process on the array's size (from 2**58) and past 2**63 - 1 the shape does
+# not fit XLA's int64, neither of which can be reported in one line.
+_BODIES_MAX = 2**40
+
+
+def _body_count(text: str) -> int:
+    """A number of bodies: a positive integer no larger than any machine could draw (`_BODIES_MAX`)."""
+    value = _positive_int(text)
+    if value > _BODIES_MAX:
+        raise argparse.ArgumentTypeError(f"must be at most 2**40 = {_BODIES_MAX}, got {value}")
     return value
 
 
@@ -121,6 +153,11 @@ def _finite_float(text: str) -> float:
         raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"must be finite, got {text!r}")
+    if value == 0 and isinstance(text, str) and re.search(r"[1-9]", re.split("[eE]", text)[0]):
+        # `1e-400`: a non-zero number below the smallest float64 would otherwise be "got 0".
+        raise argparse.ArgumentTypeError(
+            f"{text!r} underflows to 0 (below {math.ulp(0.0):g}, the smallest float64)"
+        )
     return value
 
 
@@ -157,6 +194,18 @@ def _read_text(path: str, what: str) -> str:
         raise CommandLineError(f"{path}: cannot read ({e.strerror})") from None
 
 
+_LINE_END = re.compile(r"\r\n|\r|\n")
+
+
+def _lines(text: str) -> list[str]:
+    """The lines of `text`, numbered as editors, `wc -l` and `sed -n Np` number them.
+
+    Only LF, CR LF and CR end a line (the line ends of a CSV or TOML file): `str.splitlines` also
+    splits at form feed, 0x1C-0x1E, NEL (U+0085), U+2028 and U+2029, which may stand in a comment.
+    """
+    return _LINE_END.split(text)
+
+
 _CSV_COLUMNS = ("t", "w", "x", "y", "z")
 
 
@@ -172,11 +221,17 @@ def read_observations_csv(path: str):
     rows: list[list[float]] = []
     line_numbers: list[int] = []
     seen_content = False
-    for number, raw in enumerate(text.splitlines(), start=1):
+    for number, raw in enumerate(_lines(text), start=1):
         line = raw.strip()
         if not line or line.startswith("#"):
             continue
         fields = [f.strip() for f in line.split(",")]
+        if len(fields) == 1 and (";" in line or "\t" in line):
+            # Another separator (a spreadsheet export): neither a wrong header nor one column.
+            separator = ";" if ";" in line else "\t"
+            raise CommandLineError(
+                f"{path} line {number}: columns must be separated by commas, got {separator!r}"
+            )
         if not seen_content:
             seen_content = True
             names = tuple(f.lower() for f in fields)
@@ -240,7 +295,7 @@ def _is_number(text: str) -> bool:
 
 # Options of `simulate` that a TOML file may set: name → parser (`bool` / `str`: the TOML type).
 _SIMULATE_KEYS: dict[str, Any] = {
-    "bodies": _positive_int,
+    "bodies": _body_count,
     "steps": _step_count,
     "dt": _positive_float,
     "method": str,
@@ -288,10 +343,17 @@ def _read_simulate_toml(path: str) -> tuple[dict[str, Any], dict[str, str]]:
         table = table["simulate"]
 
     def where(key: str) -> str:
-        for number, line in enumerate(text.splitlines(), start=1):
-            if line.strip().split("=")[0].strip().strip('"') == key:
-                return f"{path} line {number}"
-        return path
+        """The file and the line setting `key` when exactly one line plainly does (`key = …`, the key
+        quoted or under `simulate.`); the file alone when none or several do — a key's text may also
+        stand in a multi-line string, and an escaped, inline-table or other key form is not read
+        here — so a line that is named is never the wrong one."""
+        names = {key, f"simulate.{key}"}
+        numbers = [
+            number
+            for number, line in enumerate(_lines(text), start=1)
+            if "=" in line and line.split("=", 1)[0].strip().strip("\"'") in names
+        ]
+        return f"{path} line {numbers[0]}" if len(numbers) == 1 else path
 
     config: dict[str, Any] = {}
     sources: dict[str, str] = {}
@@ -419,6 +481,10 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         )
     if not config["output"]:
         raise CommandLineError(f"{sources['output']}: must name a directory, got ''")
+    if os.path.exists(config["output"]) and not os.path.isdir(config["output"]):
+        raise CommandLineError(
+            f"{sources['output']}: {config['output']} exists and is not a directory"
+        )
     _check_representable(config, sources, config["dtype"])
     _setup_jax(config["dtype"])
 
@@ -436,10 +502,11 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         raise CommandLineError(
             f"the initial angular velocities ω = omega_mean + omega_scale·N(0, I) overflow "
             f"{dtype.name} ({sources['omega_mean']} {config['omega_mean']}, "
-            f"{sources['omega_scale']} {config['omega_scale']:g}); use smaller values or "
-            "--dtype float64"
+            f"{sources['omega_scale']} {config['omega_scale']:g}); use smaller values"
+            f"{_or_float64(dtype.name)}"
         )
     inertia = None if config["inertia"] is None else jnp.asarray(config["inertia"], dtype)
+    index_before = _file_identity(os.path.join(config["output"], "index.json"))
     try:
         result = simulate_ensemble(
             q0,
@@ -456,12 +523,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
         )
     except KeyboardInterrupt:
-        print(
-            f"{_PROG}: interrupted; the completed chunks are in {config['output']}/ "
-            "(jaxquat.load_ensemble reads them)",
-            file=sys.stderr,
-        )
-        return 130
+        raise _Interrupted(_saved_before_interrupt(config["output"], index_before)) from None
     outputs = {"final orientations": result.final, "final angular velocities": result.final_omega}
     if result.total_angle is not None:
         outputs["total rotation angles"] = result.total_angle
@@ -469,7 +531,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         outputs,
         f"the simulation (dt {config['dt']:g}, omega_scale {config['omega_scale']:g}, "
         f"{dtype.name}); {config['output']}/ holds the invalid results. Use a smaller "
-        "--dt / --omega-scale or --dtype float64",
+        f"--dt / --omega-scale{_or_float64(dtype.name)}",
     )
     kind = "rigid bodies" if inertia is not None else "kinematic bodies"
     method = config["method"] or ("cf4" if inertia is not None else "euler")
@@ -499,6 +561,42 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _file_identity(path: str) -> tuple[int, int, int] | None:
+    """A file's (inode, modification time, size), or None if there is none: tells a replaced file."""
+    try:
+        status = os.stat(path)
+    except OSError:
+        return None
+    return status.st_ino, status.st_mtime_ns, status.st_size
+
+
+def _saved_before_interrupt(output: str, index_before: tuple[int, int, int] | None) -> str:
+    """What an interrupted `simulate` left in `output`, as the index the ensemble writer keeps says.
+
+    The writer renames a new index.json into place when it starts and after every chunk, so an index
+    other than the one found before the run is this run's. Without `save_every` it saves no states
+    until the end: the message must not promise any.
+    """
+    index_path = os.path.join(output, "index.json")
+    if _file_identity(index_path) in (None, index_before):
+        return ""  # interrupted before the run wrote anything
+    try:
+        with open(index_path, encoding="utf-8") as f:
+            index = json.load(f)
+        steps = [step for record in index["records"] for step in record["steps"]]
+        done = f"after {index['steps_done']:,} of {index['num_steps']:,} steps; {output}/ holds"
+        if not steps:
+            return (
+                f"{done} no saved states (without --save-every only the final state is saved, "
+                "when the run completes)"
+            )
+        states = f"{len(steps):,} saved state{'s' if len(steps) > 1 else ''}"
+        span = f"step {steps[0]:,}" if len(steps) == 1 else f"steps {steps[0]:,} to {steps[-1]:,}"
+        return f"{done} {states}, {span} (jaxquat.load_ensemble reads them)"
+    except (OSError, ValueError, KeyError, TypeError):  # not readable after all: say nothing of it
+        return ""
+
+
 def _check_representable(config: dict[str, Any], sources: dict[str, str], dtype: str) -> None:
     """Reject option values that overflow the run's dtype or underflow to zero in it."""
     import numpy as np
@@ -514,15 +612,20 @@ def _check_representable(config: dict[str, Any], sources: dict[str, str], dtype:
         if not np.all(np.isfinite(converted)):
             raise CommandLineError(
                 f"{sources[key]}: {key} {_show(value)} overflows {dtype} (largest {info.max:g}); "
-                "use a smaller value or --dtype float64"
+                f"use a smaller value{_or_float64(dtype)}"
             )
         if np.any((converted == 0) & (exact != 0)) or np.any(
             (exact != 0) & (np.abs(exact) < info.tiny)
         ):
             raise CommandLineError(
                 f"{sources[key]}: {key} {_show(value)} underflows {dtype} (smallest normal "
-                f"{info.tiny:g}); use a larger value or --dtype float64"
+                f"{info.tiny:g}); use a larger value{_or_float64(dtype)}"
             )
+
+
+def _or_float64(dtype: str) -> str:
+    """The advice to run in float64, for a run that is not in float64 already."""
+    return "" if dtype == "float64" else " or --dtype float64"
 
 
 def _show(value) -> str:
@@ -580,7 +683,8 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     if args.model == "constant":
         omega = np.asarray(fit.omega, dtype=np.float64)
         report["omega"] = omega.tolist()
-        report["omega_norm"] = float(np.linalg.norm(omega))
+        # hypot scales: sqrt(x² + y² + z²) overflows from |ω| ~ 1e154 and underflows below 1e-154.
+        report["omega_norm"] = math.hypot(*omega.tolist())
     else:
         report["knots"] = np.asarray(fit.omega.knots, dtype=np.float64).tolist()
         report["omega_at_knots"] = np.asarray(fit.omega.values, dtype=np.float64).tolist()
@@ -591,6 +695,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
                 report["residual_rms_deg"],
                 report["residual_max_deg"],
                 *np.ravel(report.get("omega", [])),
+                report.get("omega_norm", 0.0),
                 *np.ravel(report.get("omega_at_knots", [])),
             ]
         },
@@ -841,9 +946,7 @@ def _build_parser() -> argparse.ArgumentParser:
     commands.required = True
 
     demo = commands.add_parser("demo", help="10⁵-body ensemble, a fit of ω, a table and a PNG")
-    demo.add_argument(
-        "--bodies", type=_positive_int, default=100_000, help="ensemble size (100000)"
-    )
+    demo.add_argument("--bodies", type=_body_count, default=100_000, help="ensemble size (100000)")
     demo.add_argument("--steps", type=_step_count, default=400, help="time steps (400)")
     demo.add_argument("--output", default="jaxquat_demo.png", help="PNG path (./jaxquat_demo.png)")
     demo.add_argument("--seed", type=_seed, default=0, help="random seed 0 … 2**32-1 (0)")
@@ -855,8 +958,10 @@ def _build_parser() -> argparse.ArgumentParser:
     )
 
     simulate = commands.add_parser("simulate", help="run an ensemble; write results and a summary")
-    simulate.add_argument("--config", help="TOML file with any of the options below (underscores)")
-    simulate.add_argument("--bodies", type=_positive_int, help="number of bodies (10000)")
+    simulate.add_argument(
+        "--config", action=_Once, help="TOML file with any of the options below (underscores)"
+    )
+    simulate.add_argument("--bodies", type=_body_count, help="number of bodies (10000)")
     simulate.add_argument("--steps", type=_step_count, help="number of steps (1000)")
     simulate.add_argument("--dt", type=_positive_float, help="time step in s (0.01)")
     simulate.add_argument(
@@ -922,7 +1027,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line with `argv` (default `sys.argv[1:]`); returns the exit status.
 
     0 on success, 2 for a bad argument or file (one line on stderr), 130 when interrupted,
-    1 for an unexpected error (one line on stderr, never a traceback).
+    1 for an unexpected error (one line on stderr, never a traceback). Interrupted on the command
+    line (`argv` None), the process ends right after its one line (see `_exit_now`).
     """
     from_command_line = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -953,21 +1059,41 @@ def main(argv: Sequence[str] | None = None) -> int:
         where = f"{e.filename!r}: " if e.filename == "" else f"{e.filename}: " if e.filename else ""
         print(f"{_PROG}: error: {where}{e.strerror or _one_line(e)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"{_PROG}: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as e:
+        detail = str(e) if isinstance(e, _Interrupted) else ""
+        print(f"{_PROG}: interrupted{' ' if detail else ''}{detail}", file=sys.stderr)
+        if from_command_line:
+            _exit_now(130)
         return 130
     except SystemExit as e:  # --help / --version
         return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
     except BaseException as e:  # noqa: BLE001 (the contract: one line, never a traceback)
         if _out_of_memory(e):  # the machine's limit, reached by the arguments: not a bug
+            reason = f" ({_one_line(e)})" if _one_line(e) else ""  # a bare MemoryError says nothing
             print(
-                f"{_PROG}: error: out of memory ({_one_line(e)}); use fewer --bodies, a smaller "
+                f"{_PROG}: error: out of memory{reason}; use fewer --bodies, a smaller "
                 "--chunk-size or a larger --save-every",
                 file=sys.stderr,
             )
             return 2
         print(f"{_PROG}: internal error: {type(e).__name__}: {_one_line(e)}", file=sys.stderr)
         return 1
+
+
+def _exit_now(status: int) -> NoReturn:
+    """Flush stdout and stderr and end the process with `status` at once, skipping its teardown.
+
+    After Ctrl-C, XLA may still be running work dispatched ahead (the next chunk of an ensemble, a
+    compilation), and tearing the interpreter down under it sometimes crashed (a segmentation fault,
+    exit status -11 instead of 130). Nothing is lost: the ensemble writer closes every file and renames
+    it into place before index.json lists it, and the streams are flushed here.
+    """
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # closed, or a pipe whose reader has gone
+            pass
+    os._exit(status)
 
 
 def _out_of_memory(error: BaseException) -> bool:

@@ -2,8 +2,10 @@
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 
 import jax
 import jax.numpy as jnp
@@ -283,7 +285,35 @@ def test_unknown_global_option(argv, capsys):
     _assert_one_line_error(status, err, "unrecognized arguments")
 
 
-def test_interrupted_simulate_says_where_the_chunks_are(monkeypatch, tmp_path, capsys):
+@pytest.mark.parametrize(
+    "options, saved",
+    [
+        (["--save-every", "2"], "holds 3 saved states, steps 0 to 4 (jaxquat.load_ensemble"),
+        # Without --save-every nothing but the index is written before the end of the run.
+        ([], "holds no saved states (without --save-every only the final state is saved"),
+    ],
+)
+def test_interrupted_simulate_says_what_it_saved(monkeypatch, tmp_path, capsys, options, saved):
+    real = jaxquat._ensemble.simulate_ensemble
+
+    def interrupted_after_two_chunks(*args, **kwargs):
+        def progress(done, total):
+            if done >= 4:
+                raise KeyboardInterrupt
+
+        return real(*args, **dict(kwargs, progress=progress))
+
+    monkeypatch.setattr("jaxquat._ensemble.simulate_ensemble", interrupted_after_two_chunks)
+    argv = ["simulate", "--bodies", "3", "--steps", "10", "--chunk-size", "2", *options]
+    status, out, err = _run([*argv, "--output", tmp_path / "run"], capsys)
+    assert status == 130 and err.count("\n") == 1, err
+    assert err.startswith("jaxquat: interrupted after 4 of 10 steps; ") and saved in err, err
+    assert f"{tmp_path / 'run'}/ holds" in err
+    data = jaxquat.load_ensemble(tmp_path / "run")
+    assert data["steps"].tolist() == ([0, 2, 4] if options else []) and data["steps_done"] == 4
+
+
+def test_interrupted_before_writing_says_nothing_of_the_output(monkeypatch, tmp_path, capsys):
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
@@ -291,7 +321,77 @@ def test_interrupted_simulate_says_where_the_chunks_are(monkeypatch, tmp_path, c
     status, out, err = _run(
         ["simulate", "--bodies", "3", "--steps", "2", "--output", tmp_path / "run"], capsys
     )
-    assert status == 130 and err.count("\n") == 1 and "completed chunks" in err and "run/" in err
+    assert status == 130 and err == "jaxquat: interrupted\n"
+
+
+# Run as `python -m jaxquat` (main() without arguments), with Ctrl-C as in a terminal. The crash after
+# Ctrl-C (exit -11 instead of 130) was in the interpreter's teardown, with XLA still running: the
+# process must end right after its one line, so a handler registered with atexit must not run.
+_AS_THE_COMMAND_LINE = """
+import atexit, runpy, signal, sys
+signal.signal(signal.SIGINT, signal.default_int_handler)
+atexit.register(lambda: print("interpreter teardown", file=sys.stderr))
+{setup}
+sys.argv = ["jaxquat", *{argv!r}]
+runpy.run_module("jaxquat", run_name="__main__")
+"""
+
+
+def _start(argv, cwd, setup=""):
+    script = _AS_THE_COMMAND_LINE.format(setup=setup, argv=[str(a) for a in argv])
+    return subprocess.Popen(
+        [sys.executable, "-c", script],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=cwd,
+        env=dict(os.environ, JAX_PLATFORMS="cpu"),
+    )
+
+
+def _steps_done(run):
+    try:
+        return json.loads((run / "index.json").read_text())["steps_done"]
+    except (OSError, ValueError):  # not written yet
+        return 0
+
+
+def test_ctrl_c_during_a_streaming_run_ends_the_process_after_one_line(tmp_path):
+    run = tmp_path / "run"
+    argv = ["simulate", "--bodies", "1000", "--steps", "2000000000", "--save-every", "10000"]
+    process = _start([*argv, "--chunk-size", "10000", "--no-progress", "--output", run], tmp_path)
+    deadline = time.monotonic() + 300
+    while process.poll() is None and _steps_done(run) == 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    process.send_signal(signal.SIGINT)
+    out, err = process.communicate(timeout=300)
+    assert process.returncode == 130 and err.count("\n") == 1, (process.returncode, err)
+    assert err.startswith("jaxquat: interrupted after ") and out == "", err
+    data = jaxquat.load_ensemble(run)  # what the line says is there, all of it on disk
+    assert not data["complete"] and f"holds {len(data['steps']):,} saved states" in err, err
+
+
+_INTERRUPTED_STARTING = {
+    # Ctrl-C while main() sets up (importing and configuring jax, compiling): its own line.
+    "main": "import jaxquat._cli\n"
+    "def interrupted(dtype):\n"
+    "    raise KeyboardInterrupt\n"
+    "jaxquat._cli._setup_jax = interrupted\n",
+    # Ctrl-C while `python -m jaxquat` loads the command line module, before main() runs.
+    "loading": "class Interrupted:\n"
+    "    def find_spec(self, name, path=None, target=None):\n"
+    "        if name == 'jaxquat._cli':\n"
+    "            raise KeyboardInterrupt\n"
+    "sys.meta_path.insert(0, Interrupted())\n",
+}
+
+
+@pytest.mark.parametrize("when", sorted(_INTERRUPTED_STARTING))
+def test_ctrl_c_while_starting_is_one_line_and_130(tmp_path, when):
+    argv = ["simulate", "--bodies", "3", "--steps", "2", "--output", tmp_path / "run"]
+    process = _start(argv, tmp_path, setup=_INTERRUPTED_STARTING[when])
+    out, err = process.communicate(timeout=300)
+    assert (process.returncode, err, out) == (130, "jaxquat: interrupted\n", "")
 
 
 def test_simulate_into_an_unwritable_output_is_one_line_error(tmp_path, capsys):

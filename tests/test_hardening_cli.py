@@ -461,10 +461,11 @@ class JaxRuntimeError(RuntimeError):
     "error",
     [
         MemoryError("Unable to allocate 1.2 TiB for an array"),
+        MemoryError(),
         JaxRuntimeError("INTERNAL: Out of memory allocating 1200000000000 bytes."),
         JaxRuntimeError("RESOURCE_EXHAUSTED: failed to allocate"),
     ],
-    ids=["numpy", "xla-internal", "xla-resource-exhausted"],
+    ids=["numpy", "bare", "xla-internal", "xla-resource-exhausted"],
 )
 def test_out_of_memory_is_a_one_line_user_error(tmp_path, capsys, monkeypatch, error):
     # Arguments too large for the machine are the user's to change (exit 2, one line naming the
@@ -475,6 +476,7 @@ def test_out_of_memory_is_a_one_line_user_error(tmp_path, capsys, monkeypatch, e
     monkeypatch.setattr("jaxquat._ensemble.simulate_ensemble", fail)
     status, out, err = _run(_simulate(tmp_path), capsys)
     _assert_one_line_error(status, out, err, "out of memory", "--bodies", "--chunk-size")
+    assert "()" not in err  # a bare MemoryError has no reason to show
 
 
 def test_unexpected_runtime_error_is_still_internal(tmp_path, capsys, monkeypatch):
@@ -501,3 +503,233 @@ def test_fit_accepts_bfloat16_observations():
     fit = jaxquat.fit_angular_velocity(times.astype(jnp.bfloat16), qs.astype(jnp.bfloat16))
     assert fit.omega.dtype == jnp.bfloat16
     np.testing.assert_allclose(np.asarray(fit.omega, np.float64), [0.3, 0.2, 0.1], atol=3e-3)
+
+
+# --- 8. load_ensemble on damaged or inconsistent runs; genuine runs ------------------------------
+
+
+def _rewrite_index(run, edit):
+    index = json.loads((run / "index.json").read_text())
+    edit(index)
+    (run / "index.json").write_text(json.dumps(index))
+
+
+def _huge_step_counts(index):
+    index.update(steps_done=10**20, num_steps=10**20, complete=False)
+    index["records"][-1]["steps"] = [10**19]
+
+
+@pytest.mark.parametrize(
+    "damage, message",
+    [
+        (
+            lambda run: (run / "states_000001.npy").write_bytes(b""),  # was an EOFError
+            r"states_000001.npy, record 1 \(states\), is not a readable .npy file \(EOFError",
+        ),
+        (
+            lambda run: _rewrite_index(run, _huge_step_counts),  # was an OverflowError
+            r"index.json: num_steps must be at most 2\*\*31 - 1 = 2147483647, got 10{20}",
+        ),
+        (
+            lambda run: (run / "index.json").write_text("[" * 100_000 + "]" * 100_000),
+            "index.json is nested too deeply",  # was a RecursionError
+        ),
+        (
+            lambda run: _rewrite_index(run, lambda index: index.update(version=99)),
+            r"index.json: format version 99 is not one this jaxquat reads \(version 1\)",
+        ),
+        (
+            lambda run: _rewrite_index(run, lambda index: index.update(dt=1e308)),
+            r"index.json: the time t0 \+ k·dt of saved step k = 2 is not finite",
+        ),
+        (
+            lambda run: _rewrite_index(run, lambda index: index.update(final={})),
+            "index.json: complete, but final lacks final, final_omega, angle_from_start",
+        ),
+        (
+            lambda run: _rewrite_index(run, lambda index: index.update(records=[])),
+            "index.json: complete, but its records hold 0 saved states where save_every 2 and "
+            "steps_done 6 make 4",
+        ),
+        (
+            lambda run: _rewrite_index(run, lambda index: index["records"].pop(2)),
+            "index.json: complete, but its records hold 3 saved states",
+        ),
+        (
+            lambda run: _rewrite_index(run, lambda index: index["records"][2].update(steps=[3])),
+            r"index.json: complete, but saved step 3 is not step 4 \(every save_every 2 steps",
+        ),
+    ],
+    ids=[
+        "empty-npy",
+        "huge-steps",
+        "deep-json",
+        "version",
+        "times-overflow",
+        "no-final",
+        "no-records",
+        "missing-record",
+        "wrong-step",
+    ],
+)
+def test_load_ensemble_names_the_damaged_file(run, damage, message):
+    damage(run)
+    with pytest.raises(ValueError, match=message):
+        load_ensemble(run)
+
+
+@pytest.mark.parametrize("interrupted", [False, True], ids=["complete", "interrupted"])
+@pytest.mark.parametrize("save_every", [None, 3])
+@pytest.mark.parametrize("dynamic", [False, True], ids=["kinematic", "rigid"])
+def test_load_ensemble_reads_every_genuine_run(tmp_path, dynamic, save_every, interrupted):
+    # 10 steps in chunks of 3: the last chunk is one step, with no state to save.
+    def progress(done, total):
+        if interrupted and done >= 6:
+            raise KeyboardInterrupt
+
+    args = (np.tile([1.0, 0, 0, 0], (5, 1)), np.tile([0.1, 0.2, 0.3], (5, 1)), 0.1, 10)
+    kwargs = dict(save_every=save_every, chunk_size=3, path=tmp_path / "run", progress=progress)
+    if dynamic:
+        kwargs["inertia"] = np.array([1.0, 2.0, 3.0])
+    if interrupted:
+        with pytest.raises(KeyboardInterrupt):
+            simulate_ensemble(*args, **kwargs)
+    else:
+        simulate_ensemble(*args, **kwargs)
+    data = load_ensemble(tmp_path / "run")
+    done = 6 if interrupted else 10
+    assert data["complete"] is not interrupted and data["steps_done"] == done and data["finite"]
+    assert data["steps"].tolist() == (list(range(0, done + 1, 3)) if save_every else [])
+    assert data["states"].shape == (len(data["steps"]), 5, 4)
+    assert ("omegas" in data) is dynamic and ("final" in data) is not interrupted
+
+
+def test_load_ensemble_marks_results_that_are_not_finite(tmp_path, capsys):
+    # The CLI reports the overflow and keeps the run on disk: load_ensemble says it is not finite.
+    options = ["--dt", "1e30", "--omega-scale", "1e10", "--save-every", "1"]
+    status, out, err = _run(_simulate(tmp_path, *options), capsys)
+    _assert_one_line_error(status, out, err, "not finite", "or --dtype float64")
+    data = load_ensemble(tmp_path / "run")
+    assert data["complete"] and not data["finite"]
+
+
+# --- 9. command-line review: bounds, one-line errors that name the option or the line -----------
+
+
+@pytest.mark.parametrize("bodies", [10**20, 2**63 - 1, 2**40 + 1])
+@pytest.mark.parametrize("command", ["simulate", "demo"])
+def test_bodies_beyond_any_machine_name_the_option(tmp_path, capsys, command, bodies):
+    argv = [command, "--bodies", bodies, "--steps", "1", "--no-progress"]
+    status, out, err = _run([*argv, "--output", tmp_path / "out.png"], capsys)
+    _assert_one_line_error(status, out, err, "--bodies", "at most 2**40", str(bodies))
+
+
+def test_toml_bodies_beyond_any_machine_names_the_file(tmp_path, capsys):
+    config = tmp_path / "run.toml"
+    config.write_text("steps = 1\nbodies = 9223372036854775807\n")
+    status, out, err = _run(["simulate", "--config", config, "--no-progress"], capsys)
+    _assert_one_line_error(status, out, err, "run.toml line 2", "bodies", "at most 2**40")
+
+
+# Exact observations of ω = (1, 1, 1)·scale, 1e-160 s (1e200 s) apart: 0.17 rad per interval.
+_SPINNING = [
+    "0.92338051687663869,0.10259783520851541,0.20519567041703082,0.30779350562554619",
+    "0.88917911277087114,0.15344815172937834,0.24029104005963228,0.35787481918948211",
+    "0.8483130323045458,0.20314832622068418,0.27358535298448344,0.4052737487283834",
+    "0.80108857956929169,0.25132584028508154,0.30482905787272818,0.44963502439765241",
+]
+
+
+@pytest.mark.parametrize("interval, omega", [("e-160", 1e159), ("e+200", 1e-201)])
+def test_fit_omega_norm_neither_overflows_nor_underflows(tmp_path, capsys, interval, omega):
+    rows = [f"{k}{interval},{q}" if k else f"0,{q}" for k, q in enumerate(_SPINNING)]
+    path = _write(tmp_path / "spin.csv", rows)
+    status, out, err = _run(["fit", path, "--json"], capsys)
+    assert status == 0, err
+    report = json.loads(out)
+    np.testing.assert_allclose(report["omega"], [omega] * 3, rtol=1e-9)
+    assert report["omega_norm"] == pytest.approx(3**0.5 * omega, rel=1e-9)
+    status, out, err = _run(["fit", path], capsys)
+    assert status == 0 and f"|omega| = {3**0.5 * omega:.9g}," in out, (out, err)
+
+
+@pytest.mark.parametrize("separator", ["\u2028", "\u2029", "\x85", "\x0c", "\x1c", "\x1d", "\x1e"])
+def test_csv_line_numbers_count_only_line_ends(tmp_path, capsys, separator):
+    # Editors, `wc -l` and `sed -n 5p` count LF (CR LF, CR): so must the message.
+    times, qs = _observations(6)
+    lines = [f"# exported{separator}by the tracker", *_csv_lines(times, qs)]
+    lines[3] = lines[3].rsplit(",", 1)[0] + ",oops"
+    path = _write(tmp_path / "obs.csv", lines)
+    status, out, err = _run(["fit", path], capsys)
+    _assert_one_line_error(status, out, err, "obs.csv line 5:", "column z", "'oops'")
+
+
+@pytest.mark.parametrize("header", [True, False])
+@pytest.mark.parametrize("separator", [";", "\t"])
+def test_csv_with_another_separator_says_so(tmp_path, capsys, separator, header):
+    times, qs = _observations(6)
+    lines = [line.replace(",", separator) for line in _csv_lines(times, qs)]
+    path = _write(tmp_path / "semicolons.csv", lines, header=False)
+    if header:
+        path.write_text(f"t{separator}w{separator}x{separator}y{separator}z\n" + path.read_text())
+    status, out, err = _run(["fit", path], capsys)
+    _assert_one_line_error(status, out, err, "line 1:", "separated by commas", repr(separator))
+    assert "header" not in err
+
+
+def test_config_given_twice_is_an_error_naming_it(tmp_path, capsys):
+    first, second = tmp_path / "first.toml", tmp_path / "second.toml"
+    first.write_text("bodies = 7\nbogus_key = 1\n")  # would otherwise be silently ignored
+    second.write_text("steps = 2\n")
+    argv = ["simulate", "--config", first, "--config", second, "--no-progress"]
+    status, out, err = _run([*argv, "--output", tmp_path / "run"], capsys)
+    _assert_one_line_error(status, out, err, "--config", "only once", "first.toml", "second.toml")
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(
+    "text, line",
+    [
+        ('output = """\nrun\ndt = 5\n"""\ndt = -1\n', None),  # the key's text in a string too
+        ("output = '''run\ndt = 5'''\ndt = -1\n", None),
+        ("inertia = [\n  1, # dt = 5\n  2, 3,\n]\ndt = -1\n", 5),  # in a comment: not a key
+        ("# settings\n'dt' = -1\n", 2),  # quoted keys
+        ('steps = 2\n"d\\u0074" = -1\n', None),  # an escaped one
+        ("simulate.dt = -1\n", 1),  # a dotted key
+        ("simulate = {steps = 2, dt = -1}\n", None),  # an inline table
+        ("[simulate]\nsteps = 2\n\ndt = -1\n", 4),  # a table
+    ],
+)
+def test_toml_errors_name_the_line_of_the_key_or_no_line(tmp_path, capsys, text, line):
+    """The line is named when one line plainly sets the key, and otherwise none: never a wrong line
+    (the key's text in a multi-line string once named that line)."""
+    config = tmp_path / "conf.toml"
+    config.write_text(text)
+    status, out, err = _run(
+        ["simulate", "--config", config, "--no-progress", "--output", tmp_path / "run"], capsys
+    )
+    where = "conf.toml" if line is None else f"conf.toml line {line}"
+    _assert_one_line_error(status, out, err, f"{where}: dt must be positive")
+    if line is None:
+        assert " line " not in err
+
+
+def test_option_underflowing_to_zero_says_so(tmp_path, capsys):
+    status, out, err = _run(_simulate(tmp_path, "--dt", "1e-400"), capsys)
+    _assert_one_line_error(status, out, err, "--dt", "'1e-400' underflows to 0")
+
+
+def test_non_finite_float64_results_do_not_advise_float64(tmp_path, capsys):
+    options = ["--dt", "1e300", "--omega-scale", "1e10", "--dtype", "float64"]
+    status, out, err = _run(_simulate(tmp_path, *options), capsys)
+    _assert_one_line_error(status, out, err, "not finite", "float64")
+    assert "--dtype float64" not in err
+
+
+def test_existing_file_as_output_names_the_option(tmp_path, capsys):
+    (tmp_path / "results.txt").write_text("keep me")
+    status, out, err = _run(
+        _simulate(tmp_path)[:-2] + ["--output", tmp_path / "results.txt"], capsys
+    )
+    _assert_one_line_error(status, out, err, "--output", "results.txt", "not a directory")
+    assert (tmp_path / "results.txt").read_text() == "keep me"
