@@ -182,6 +182,10 @@ class Preset:
     # virtual machine fresh memory costs more per byte the more of it there is, so a fast peer timed on
     # fewer steps (a smaller buffer) would look faster per step than it is.
     w2_budget: float | None = None
+    # W5 at larger N times jaxquat alone (a peer's sampled gradient at N = 10⁵ takes 8-15 s) and checks
+    # its gradient on the `check_bodies` subset against the hand-written loop's gradient of those
+    # bodies (the loss is a sum over bodies, so each body's rows depend on that body alone).
+    w5_peers_max_bodies: int | None = None
 
 
 PRESETS: dict[str, Preset] = {
@@ -214,7 +218,8 @@ PRESETS: dict[str, Preset] = {
         w4_steps=(64, 256, 1024),  # euler and midpoint (far from 1e-8: context for the plot)
         w4_tolerances=(1e-6, 1e-9, 1e-12),
         w4_repeats=3,
-        w5_sizes=(1000,),
+        w5_sizes=(1000, 100_000),
+        w5_peers_max_bodies=1000,
         reference=False,
         w2_check_bodies=512,
         w2_budget=2.0,
@@ -936,9 +941,15 @@ def coning_exact(t) -> np.ndarray:
     return _q_mul(_q_mul(_q_exp(a * t, np), _q_exp(b * t, np), np), q0, np)
 
 
-def _autorange(function: Callable[[], Any], repeats: int, sample_seconds: float = 0.02) -> float:
-    """Median seconds per call, repeating short calls within each sample."""
-    seconds, _ = _timed(function)
+def _autorange(
+    function: Callable[[], Any],
+    repeats: int,
+    sample_seconds: float = 0.02,
+    first_seconds: float | None = None,
+) -> float:
+    """Median seconds per call, repeating short calls within each sample. The first call (also the
+    warm-up) sizes the samples; `first_seconds`: such a call was just made and took this long."""
+    seconds = _timed(function)[0] if first_seconds is None else first_seconds
     number = max(1, min(10000, int(sample_seconds / max(seconds, 1e-7))))
     samples = []
     for _ in range(repeats):
@@ -1284,6 +1295,12 @@ def run_w5_row(problem: Problem, sampled: bool, preset: Preset, log: Callable[[s
         "contenders": {},
     }
     forwards = _w5_forwards(problem, sampled)
+    peers_max = preset.w5_peers_max_bodies
+    subset = None  # compare the gradient on these bodies only (all when None)
+    if peers_max is not None and problem.num_bodies > peers_max:
+        subset = check_bodies(problem.num_bodies, peers_max)
+        record["checked_bodies"] = len(subset)
+        log(f"  peers not timed above N = {peers_max:,}; gradient checked on {len(subset)} bodies")
 
     def gradient_of(final) -> Runner:
         return _compiled(
@@ -1291,24 +1308,28 @@ def run_w5_row(problem: Problem, sampled: bool, preset: Preset, log: Callable[[s
             omega,
         )
 
+    def rows(g):  # the gradient's rows of the checked bodies (the body axis is ω's second-last)
+        return g if subset is None else np.take(g, subset, axis=-2)
+
     # Reference gradient: the independent hand-written loop in float64 (itself checked against the
-    # closed form's gradient for constant ω in tests/test_bench.py). In a float64 row that is the
+    # closed form's gradient for constant ω in tests/test_bench.py). In a full float64 row that is the
     # JAX loop contender's own gradient, compiled once for both.
     loop_gradient = None
-    if problem.dtype == "float64":
-        loop_gradient = gradient_of(forwards["JAX loop"])
+    reference_forward = forwards["JAX loop"]
+    if problem.dtype == "float64" and subset is None:
+        loop_gradient = gradient_of(reference_forward)
         reference = np.asarray(_block(loop_gradient.run()))
     else:
-        reference_forward = forwards["JAX loop"]
-        q0_64 = q0.astype(jnp.float64)
-        omega_64 = omega.astype(jnp.float64)
-        target_64 = target.astype(jnp.float64)
+        pick = (lambda a: a) if subset is None else (lambda a: jnp.take(a, subset, axis=-2))
+        q0_64, omega_64, target_64 = (pick(a).astype(jnp.float64) for a in (q0, omega, target))
         reference = jax.jit(jax.grad(lambda w: _loss(reference_forward(q0_64, w), target_64, jnp)))(
             omega_64
         )
         reference = np.asarray(reference)
         del omega_64
     reference_norm = float(np.linalg.norm(reference))
+    if subset is not None:
+        forwards = {k: v for k, v in forwards.items() if k == "jaxquat"}
 
     for name, final in forwards.items():
         entry: dict[str, Any] = {"role": "jaxquat" if name == "jaxquat" else "peer"}
@@ -1319,7 +1340,8 @@ def run_w5_row(problem: Problem, sampled: bool, preset: Preset, log: Callable[[s
                 gradient = loop_gradient
             else:
                 gradient = gradient_of(final)
-            g = np.asarray(_block(gradient.run()))
+            gradient_first, g = _timed(gradient.run)  # the check's call is also the warm-up
+            g = rows(np.asarray(g))
             error = float(np.linalg.norm(g.astype(np.float64) - reference)) / max(
                 reference_norm, 1e-300
             )
@@ -1338,7 +1360,7 @@ def run_w5_row(problem: Problem, sampled: bool, preset: Preset, log: Callable[[s
                 forward.run, preset.repeats, preset.sample_seconds
             )
             entry["gradient_seconds"] = _autorange(
-                gradient.run, preset.repeats, preset.sample_seconds
+                gradient.run, preset.repeats, preset.sample_seconds, gradient_first
             )
             entry["ratio"] = entry["gradient_seconds"] / entry["forward_seconds"]
         except Exception as e:
@@ -1575,15 +1597,26 @@ def render_markdown(report: dict) -> str:
         for row in w5:
             for name, entry in row["contenders"].items():
                 if "gradient_seconds" in entry:
+                    versus = entry.get("gradient_vs_best_peer")
                     cells = (
                         f"{_seconds(entry['forward_seconds'])} | {_seconds(entry['gradient_seconds'])} | "
-                        f"{entry['ratio']:.2f} | {entry.get('gradient_vs_best_peer', float('nan')):.2f}×"
+                        f"{entry['ratio']:.2f} | {'—' if versus is None else f'{versus:.2f}×'}"
                     )
                 else:
                     cells = "failed | | | " if "failed" in entry else "WRONG | | | "
                 lines.append(
                     f"| {row['variant']} | {row['dtype']} | {row['num_bodies']:,} | {name} | {cells} |"
                 )
+        subsets = sorted(
+            {(r["num_bodies"], r["checked_bodies"]) for r in w5 if "checked_bodies" in r}
+        )
+        for size, count in subsets:
+            lines += [
+                "",
+                f"At N = {size:,} only jaxquat is timed (a peer's gradient there takes many seconds); "
+                f"its gradient is checked on {count} bodies spread over the batch against the "
+                "hand-written loop's.",
+            ]
         lines.append("")
     if report.get("notes"):
         lines += ["## Notes", ""] + [f"- {n}" for n in report["notes"]] + [""]
@@ -1760,6 +1793,17 @@ def main(argv: list[str] | None = None) -> int:
         f"jaxquat bench, preset {args.preset}: {report['machine']['cpu']}, {report['machine']['cores']} cores"
     )
 
+    # W5 differentiates the problems of W1 (constant ω) and W3 (samples): those rows' problems are
+    # kept for it instead of being made again (W3's samples at N = 10⁵: 2.4 GB, ~3.6 s).
+    w5_problems = set()
+    if "W5" in preset.workloads:
+        w5_problems = {
+            ("W3" if variant == "sampled" else "W1", dtype, size)
+            for variant in preset.w5_variants
+            for dtype in preset.w5_dtypes or preset.dtypes
+            for size in preset.w5_sizes
+        }
+    kept: dict[tuple[str, str, int], Problem] = {}
     for workload in ("W1", "W2", "W3"):
         if workload not in preset.workloads:
             continue
@@ -1768,6 +1812,8 @@ def main(argv: list[str] | None = None) -> int:
                 log(f"{workload} {dtype} N={size:,} T={preset.num_steps}")
                 problem = make_problem(workload, dtype, size, preset.num_steps)
                 row = run_row(problem, preset, log)
+                if (workload, dtype, size) in w5_problems:
+                    kept[(workload, dtype, size)] = problem
                 del problem
                 report["rows"].append(row)
                 for name, entry in row["contenders"].items():
@@ -1781,7 +1827,8 @@ def main(argv: list[str] | None = None) -> int:
             for size in preset.w5_sizes:
                 for sampled in [v == "sampled" for v in preset.w5_variants]:
                     log(f"W5 {dtype} N={size:,} {'sampled' if sampled else 'constant'} ω")
-                    problem = make_problem("W3" if sampled else "W1", dtype, size, preset.num_steps)
+                    key = ("W3" if sampled else "W1", dtype, size)
+                    problem = kept.pop(key, None) or make_problem(*key, preset.num_steps)
                     row = run_w5_row(problem, sampled, preset, log)
                     del problem
                     report["w5"].append(row)

@@ -1,6 +1,7 @@
 """Smoke test of the benchmark suite: the micro preset runs, writes its table, JSON and plot, and every
 contender's answer agrees with the closed form. Speed is never asserted here (STYLE.md rule 18)."""
 
+import dataclasses
 import json
 
 import jax
@@ -163,3 +164,30 @@ def test_user_budget_also_holds_for_w2(tmp_path):
     assert _bench.main([*argv, "--budget", "0.5", "--output", str(tmp_path)]) == 0
     config = json.loads((tmp_path / "results.json").read_text())["config"]
     assert config["budget"] == 0.5 and config["w2_budget"] is None
+
+
+@pytest.mark.parametrize("sampled", [False, True])
+def test_w5_above_the_peer_size_checks_jaxquat_on_a_subset(sampled, monkeypatch):
+    # Above `w5_peers_max_bodies` W5 times jaxquat alone and checks its gradient on a subset of bodies
+    # against the hand-written loop's gradient of those bodies: right passes, wrong is caught.
+    preset = dataclasses.replace(
+        _bench.PRESETS["micro"], w5_peers_max_bodies=5, repeats=1, sample_seconds=0.0
+    )
+    problem = _bench.make_problem("W3" if sampled else "W1", "float64", 40, 12)
+    row = _bench.run_w5_row(problem, sampled, preset, lambda message: None)
+    assert set(row["contenders"]) == {"jaxquat"}
+    assert row["checked_bodies"] == len(_bench.check_bodies(40, 5)) < 40
+    entry = row["contenders"]["jaxquat"]
+    assert entry["correct"] and entry["gradient_error"] < 1e-10 and entry["ratio"] > 0
+
+    real = _bench._w5_forwards
+
+    def wrong_jaxquat(problem, sampled):  # a 1% error in every body's gradient
+        forwards = real(problem, sampled)
+        right = forwards["jaxquat"]
+        forwards["jaxquat"] = lambda q0, omega: right(q0, 1.01 * omega)
+        return forwards
+
+    monkeypatch.setattr(_bench, "_w5_forwards", wrong_jaxquat)
+    row = _bench.run_w5_row(problem, sampled, preset, lambda message: None)
+    assert row["contenders"]["jaxquat"]["correct"] is False
