@@ -14,6 +14,7 @@ calls it with the same arguments (e.g. initial conditions made from the same see
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -358,16 +359,12 @@ class _StateWriter:
                 os.remove(os.path.join(self.path, name))
 
     def _save(self, name: str, array: np.ndarray) -> None:
-        target = os.path.join(self.path, name)
-        with open(target + ".tmp", "wb") as f:
-            np.save(f, array)
-        os.replace(target + ".tmp", target)
+        _replace_atomically(os.path.join(self.path, name), "wb", lambda f: np.save(f, array))
 
     def _write_index(self) -> None:
-        target = os.path.join(self.path, "index.json")
-        with open(target + ".tmp", "w") as f:
-            json.dump(self.index, f, indent=1)
-        os.replace(target + ".tmp", target)
+        _replace_atomically(
+            os.path.join(self.path, "index.json"), "w", lambda f: json.dump(self.index, f, indent=1)
+        )
 
     def write_record(
         self, arrays: dict[str, np.ndarray], steps: list[int], steps_done: int
@@ -391,6 +388,20 @@ class _StateWriter:
             self._save(f"{key}.npy", array)
         self.index["complete"] = True
         self._write_index()
+
+
+def _replace_atomically(target: str, mode: str, write: Callable[[Any], None]) -> None:
+    """Write `target` through a temporary file and rename it into place, so a reader never sees half
+    a file; the temporary is removed if writing fails or is interrupted (Ctrl-C, a full disk)."""
+    temporary = target + ".tmp"
+    try:
+        with open(temporary, mode) as f:
+            write(f)
+        os.replace(temporary, target)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.remove(temporary)
+        raise
 
 
 def load_ensemble(path: str | os.PathLike) -> dict[str, Any]:

@@ -182,6 +182,34 @@ def test_interrupt_between_chunks_leaves_the_completed_chunks(getkey, tmp_path):
     assert not [name for name in os.listdir(tmp_path / "run") if name.endswith(".tmp")]
 
 
+def test_interrupt_inside_a_write_leaves_no_temporary_file(getkey, tmp_path, monkeypatch):
+    # Ctrl-C while a record's .npy is half written: the earlier records stay readable and no
+    # `.tmp` file is left behind.
+    q0, omega = _ensemble(getkey, 12)
+    full = simulate_ensemble(q0, omega, 0.01, 40, save_every=5, chunk_size=10)
+    real_save = np.save
+    saves = []
+
+    def save(file, array, *args, **kwargs):
+        saves.append(array.shape)
+        if len(saves) == 3:  # the third record, interrupted with part of its file written
+            file.write(b"\x93NUMPY partial")
+            raise KeyboardInterrupt
+        return real_save(file, array, *args, **kwargs)
+
+    monkeypatch.setattr(np, "save", save)
+    with pytest.raises(KeyboardInterrupt):
+        simulate_ensemble(q0, omega, 0.01, 40, save_every=5, chunk_size=10, path=tmp_path / "run")
+    monkeypatch.undo()
+    assert len(saves) == 3
+    assert not [name for name in os.listdir(tmp_path / "run") if name.endswith(".tmp")]
+    data = load_ensemble(tmp_path / "run")
+    # Records: the initial state, steps 5-10, then steps 15-20 (interrupted).
+    assert not data["complete"] and data["steps_done"] == 10
+    np.testing.assert_array_equal(data["steps"], [0, 5, 10])
+    np.testing.assert_array_equal(data["states"], full.saved[: len(data["steps"])])
+
+
 def test_progress_is_off_by_default_and_a_bar_on_request(getkey, capsys):
     q0, omega = _ensemble(getkey, 8)
     simulate_ensemble(q0, omega, 0.01, 20, chunk_size=5)
