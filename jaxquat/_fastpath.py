@@ -557,7 +557,6 @@ def _sampled_final_jvp(series, frame, num_steps, renormalize_every, primals, tan
         if not isinstance(t, SymbolicZero)
     )
     values = tuple(t for t in tangents[:3] if not isinstance(t, SymbolicZero))
-    primal = {"q0": q0, "samples": samples, "h": h}
     # custom_linear_solve transposes only right-hand sides that are linear in the tangents, so the
     # output slot's zero is made from a live tangent: the sum of none of its entries, whose transpose
     # pads an empty array, which XLA drops (one entry's transpose was a pass over the whole cotangent,
@@ -581,18 +580,21 @@ def _sampled_final_jvp(series, frame, num_steps, renormalize_every, primals, tan
             renormalize_every,
         )
 
-    def tie(a, primal):
-        # a · (1 + 0 · one entry of a primal): `a` unchanged and still linear, but tied to the primals,
-        # so that the primitive's rule for derivatives w.r.t. its constants gives the slot a tangent
-        # (it leaves slots without one as known zeros, which reverse over reverse cannot transpose).
-        # A product, not a sum: JAX derives the transposed map (vecmat) by transposing this one,
-        # which drops additive constants but keeps the factor (a loss linear in q_T failed).
-        return a * (1.0 + 0.0 * jnp.sum(primal.reshape(-1)[:1]).astype(a.dtype))
+    def tie(a):
+        # a · (1 + 0 · one entry of every primal): `a` unchanged and still linear, but tied to all
+        # the primals, so that the primitive's rule for derivatives w.r.t. its constants gives every
+        # slot a tangent whichever primal an outer derivative is taken w.r.t. (it leaves slots without
+        # one as known zeros, which cannot be transposed: reverse over reverse failed when the slot was
+        # tied to nothing, reverse w.r.t. the samples over forward w.r.t. q₀ when it was tied to its
+        # own primal only). A product, not a sum: JAX derives the transposed map (vecmat) by
+        # transposing this one, which drops additive constants but keeps the factor (a loss linear
+        # in q_T failed).
+        anchor = sum(jnp.sum(p.reshape(-1)[:1]).astype(a.dtype) for p in (q0, samples, h))
+        return a * (1.0 + 0.0 * anchor)
 
     def matvec(x):  # I − M
         *inputs, out = x
-        tied = tuple(tie(a, primal[n]) for a, n in zip(inputs, names, strict=True))
-        return tied + (tie(out, q_final) - tangent_map(inputs),)
+        return tuple(tie(a) for a in inputs) + (tie(out) - tangent_map(inputs),)
 
     def solve(_, b):  # (I − M)⁻¹ = I + M
         *inputs, out = b

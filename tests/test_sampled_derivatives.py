@@ -155,6 +155,53 @@ def test_reverse_over_reverse_of_a_loss_linear_in_the_final_state(getkey):
         np.testing.assert_allclose(second, want, rtol=1e-12, err_msg=name)
 
 
+def test_mixed_second_derivatives_match_a_naive_loop(getkey):
+    """Mixed second derivatives, reverse mode w.r.t. the samples over forward mode w.r.t. q₀ or Δt
+    (and forward over reverse for q₀), equal the naive loop's. Reverse over forward once failed with
+    an AssertionError inside JAX: the linear map's q₀ and Δt slots were tied to their own primal only
+    and had no tangent w.r.t. the samples. (Each composition compiles for ~10 s: only these.)"""
+    q0, samples = problem(getkey(), "exact")
+    target = random_unit(getkey(), (3,))
+    u = jax.random.normal(getkey(), samples.shape)
+    directions = {"q0": jax.random.normal(getkey(), q0.shape), "h": jnp.asarray(0.7)}
+    h = jnp.asarray(DT)
+
+    def loss(final):
+        def value(q, w, h):
+            return jnp.sum(jq.multiply(jq.conjugate(target), final(q, w, h))[..., 1:] ** 2)
+
+        return value
+
+    def fast(q, w, h):
+        return jq.integrate(q, jq.sampled(w, DT), h, STEPS, save="final", renormalize_every=7)
+
+    f = loss(fast)
+    reference = loss(lambda q, w, h: naive(q, w, h, "world", 7))
+
+    def forward(g, a):  # w ↦ ∂g/∂a along the direction of a (a = "q0" or "h")
+        def derivative(w):
+            if a == "q0":
+                return jax.jvp(lambda q: g(q, w, h), (q0,), (directions[a],))[1]
+            return jax.jvp(lambda s: g(q0, w, s), (h,), (directions[a],))[1]
+
+        return derivative
+
+    expected = {}
+    for a in ("q0", "h"):
+        expected[a] = jnp.vdot(u, jax.grad(forward(reference, a))(samples))
+        assert abs(float(expected[a])) > 1e-4, a
+        value = jax.jit(lambda w, a=a: jnp.vdot(u, jax.grad(forward(f, a))(w)))(samples)
+        np.testing.assert_allclose(
+            value, expected[a], rtol=1e-11, err_msg=f"reverse over forward, {a}"
+        )
+    along = jax.jit(
+        lambda q: jax.jvp(
+            lambda x: jnp.vdot(u, jax.grad(f, argnums=1)(x, samples, h)), (q,), (directions["q0"],)
+        )[1]
+    )(q0)
+    np.testing.assert_allclose(along, expected["q0"], rtol=1e-11, err_msg="forward over reverse")
+
+
 @pytest.mark.parametrize("save", ["final", "all"])
 def test_empty_batch_and_non_finite_samples(save):
     """No bodies: an empty result of the right shape (as with a constant or callable ω), not an error
