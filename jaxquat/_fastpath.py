@@ -513,9 +513,40 @@ def _sampled_adjoint(
     p, weight, total = _over_steps(
         step, carry, num_steps, renormalize_every, renormalized, reverse=True
     )
-    lam = _multiply_soa(p, start) if world else _multiply_soa(start, p)
-    size_sq = _dot_soa(start, start)
-    return total, jnp.sum(weight), _stack(tuple(c / size_sq for c in lam))
+    # λ₀ = p₀ ⊗ q₀/|q₀|² with q₀ divided by its largest component first (|q₀|² of a float32 q₀
+    # overflows above ~1e19 and underflows below ~1e-19).
+    scale = functools.reduce(jnp.maximum, tuple(jnp.abs(c) for c in start))
+    dead = scale == 0
+    scale = jnp.where(dead, 1.0, scale)
+    unit = tuple(c / scale for c in start)
+    lam = _multiply_soa(p, unit) if world else _multiply_soa(unit, p)
+    size_sq = scale * _dot_soa(unit, unit)
+    lam = _stack(tuple(c / size_sq for c in lam))
+    if _renormalized_blocks(num_steps, renormalize_every) == 0:
+        # q₀ = 0 (a padded body) carries p ≡ 0, which holds no λ. Without renormalisation
+        # q_T = Q ⊗ q₀ (body frame q₀ ⊗ Q) for the run's rotation Q, so λ₀ = Q̄ ⊗ λ_T (λ_T ⊗ Q̄): one
+        # more forward run, from the identity, made only if some q₀ is zero.
+        def through_the_rotation():
+            one = jnp.ones_like(start[0])
+            zero = jnp.zeros_like(start[0])
+            rotation = _sampled_final(
+                _stack((one, zero, zero, zero)),
+                samples,
+                h,
+                indices,
+                series,
+                frame,
+                num_steps,
+                renormalize_every,
+            )
+            back = _conjugate_soa(_split(rotation, 4))
+            return _stack(
+                _multiply_soa(back, cotangent) if world else _multiply_soa(cotangent, back)
+            )
+
+        fallback = lax.cond(jnp.any(dead), through_the_rotation, lambda: jnp.zeros_like(lam))
+        lam = jnp.where(dead[..., None], fallback, lam)
+    return total, jnp.sum(weight), lam
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(4, 5, 6, 7))

@@ -202,6 +202,55 @@ def test_mixed_second_derivatives_match_a_naive_loop(getkey):
     np.testing.assert_allclose(along, expected["q0"], rtol=1e-11, err_msg="forward over reverse")
 
 
+@pytest.mark.parametrize("frame", ["world", "body"])
+@pytest.mark.parametrize("renormalize_every", [None, 100])
+def test_gradient_at_a_zero_or_badly_scaled_initial_state(frame, renormalize_every, getkey):
+    """q₀ = 0 (a padded body) without renormalisation: the adjoint's λ₀ = p₀ ⊗ q₀/|q₀|² was 0/0 (NaN)
+    although q_T = Q ⊗ q₀ has the finite gradient Q̄ ⊗ λ_T; now equal to the naive loop's and to
+    forward mode. float32 q₀ of length 1e±20 (|q₀|² overflows or underflows): finite and equal to
+    the float64 gradient."""
+    q0 = random_unit(getkey(), (3,)).at[1].set(0.0) * jnp.array([[1.0], [1.0], [0.6]])
+    samples = 0.8 * jax.random.normal(getkey(), (STEPS, 3, 3))
+    weights = jax.random.normal(getkey(), (3, 4))
+    every = renormalize_every
+
+    def loss(final):
+        return lambda q, w: jnp.sum(weights * final(q, w)) + jnp.sum(final(q, w) ** 2)
+
+    def fast(q, w, **options):
+        return jq.integrate(
+            q,
+            jq.sampled(w, DT),
+            DT,
+            STEPS,
+            save="final",
+            frame=frame,
+            renormalize_every=every,
+            **options,
+        )
+
+    want = jax.grad(loss(lambda q, w: naive(q, w, DT, frame, None)), argnums=(0, 1))(q0, samples)
+    got = jax.grad(loss(fast), argnums=(0, 1))(q0, samples)
+    assert float(jnp.max(jnp.abs(want[0][1]))) > 0.1  # the zero body's gradient is not zero
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(jax.jacfwd(loss(fast))(q0, samples), want[0], rtol=1e-12, atol=1e-13)
+
+    # float32 at lengths 1e20 and 1e-20 (the fast path: compensated=False); a loss linear in q_T
+    for length in (1e20, 1e-20):
+        start = (q0 * length).at[1].set(q0[0] * length)
+
+        def linear(q, w, options=None):
+            return jnp.sum(weights.astype(q.dtype) * fast(q, w, **(options or {})))
+
+        single = jax.grad(linear)(
+            start.astype(jnp.float32), samples.astype(jnp.float32), {"compensated": False}
+        )
+        double = jax.grad(linear)(start, samples)
+        assert bool(jnp.all(jnp.isfinite(single))), length
+        np.testing.assert_allclose(single, double, rtol=2e-5, atol=1e-5, err_msg=str(length))
+
+
 @pytest.mark.parametrize("save", ["final", "all"])
 def test_empty_batch_and_non_finite_samples(save):
     """No bodies: an empty result of the right shape (as with a constant or callable ω), not an error
