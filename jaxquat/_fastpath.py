@@ -611,21 +611,19 @@ def _sampled_final_jvp(series, frame, num_steps, renormalize_every, primals, tan
             renormalize_every,
         )
 
-    def tie(a):
-        # a · (1 + 0 · one entry of every primal): `a` unchanged and still linear, but tied to all
-        # the primals, so that the primitive's rule for derivatives w.r.t. its constants gives every
-        # slot a tangent whichever primal an outer derivative is taken w.r.t. (it leaves slots without
-        # one as known zeros, which cannot be transposed: reverse over reverse failed when the slot was
-        # tied to nothing, reverse w.r.t. the samples over forward w.r.t. q₀ when it was tied to its
-        # own primal only). A product, not a sum: JAX derives the transposed map (vecmat) by
-        # transposing this one, which drops additive constants but keeps the factor (a loss linear
-        # in q_T failed).
-        anchor = sum(jnp.sum(p.reshape(-1)[:1]).astype(a.dtype) for p in (q0, samples, h))
-        return a * (1.0 + 0.0 * anchor)
-
     def matvec(x):  # I − M
+        # Every slot times (1 + 0 · one entry of every primal): unchanged and still linear, but tied
+        # to all the primals, so that the primitive's rule for derivatives w.r.t. its constants gives
+        # every slot a tangent whichever primal an outer derivative is taken w.r.t. (it leaves slots
+        # without one as known zeros, which cannot be transposed: reverse over reverse failed when
+        # the slot was tied to nothing, reverse w.r.t. the samples over forward w.r.t. q₀ when it was
+        # tied to its own primal only). A product, not a sum: JAX derives the transposed map (vecmat)
+        # by transposing this one, which drops additive constants but keeps the factor (a loss
+        # linear in q_T failed).
+        anchor = sum(jnp.sum(p.reshape(-1)[:1]) for p in (q0, samples, h))
         *inputs, out = x
-        return tuple(tie(a) for a in inputs) + (tie(out) - tangent_map(inputs),)
+        tied = tuple(a * (1.0 + 0.0 * anchor.astype(a.dtype)) for a in (*inputs, out))
+        return tied[:-1] + (tied[-1] - tangent_map(inputs),)
 
     def solve(_, b):  # (I − M)⁻¹ = I + M
         *inputs, out = b
