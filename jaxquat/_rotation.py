@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 
 import jax.numpy as jnp
+from jax import lax
 from jaxtyping import Array, ArrayLike
 
 from ._numerics import (
@@ -72,10 +73,16 @@ def from_axis_angle(axis: ArrayLike, angle: ArrayLike) -> Array:
     axis = check_trailing(axis, 3, "axis")
     angle = as_float_array(angle, "angle")
     axis, angle = broadcast_batch((axis, 1, "axis"), (angle, 0, "angle"))
-    axis_norm = safe_norm(axis, keepdims=True)
-    # `~(norm <= 0)`, not `norm > 0`: a NaN axis takes the computing branch and stays NaN.
-    has_axis = ~(axis_norm <= 0)
-    unit = axis / jnp.where(has_axis, axis_norm, jnp.ones_like(axis_norm))
+    # The axis is divided by its largest |component| first, so |axis|² can neither overflow nor
+    # underflow (a float32 axis of length 1e20 or 1e-20 has a direction too); the scale is held
+    # constant, as the direction does not depend on it.
+    scale = lax.stop_gradient(jnp.max(jnp.abs(axis), axis=-1, keepdims=True))
+    # `~(scale <= 0)`, not `scale > 0`: a NaN axis takes the computing branch and stays NaN.
+    has_axis = ~(scale <= 0)
+    scaled = axis / jnp.where(has_axis, scale, jnp.ones_like(scale))
+    norm_sq = sum_squares(scaled, keepdims=True)  # in [1, 3] for a non-zero axis
+    axis_norm = jnp.sqrt(jnp.where(has_axis, norm_sq, jnp.ones_like(norm_sq)))
+    unit = scaled / axis_norm
     # No axis, no rotation: the angle about a zero axis is dropped (else (cos θ/2, 0, 0, 0), not unit).
     # `0 * angle` rather than a literal 0 keeps a NaN angle NaN (its derivative is still 0).
     half = jnp.where(has_axis[..., 0], 0.5 * angle, 0.0 * angle)
@@ -282,7 +289,8 @@ def to_euler(q: ArrayLike, seq: str) -> Array:
     A direct, general and computationally efficient method", PLoS ONE 17(11): e0276302, as SciPy
     implements it. The first and third angles lie in [−π, π]; the middle one in [0, π] for proper Euler
     sequences (`zxz`, …) and in [−π/2, π/2] for Tait–Bryan ones (`xyz`, …). Within 1e-7 of gimbal lock
-    (middle angle 0 or π; ±π/2 for Tait–Bryan) the split between first and third angle is not unique:
+    (middle angle 0 or π; ±π/2 for Tait–Bryan; at π, in float32, within 4π·eps ≈ 1.5e-6, the
+    resolution of float32 there) the split between first and third angle is not unique:
     as SciPy does, the third angle is set to 0 — without SciPy's warning, since values are not
     inspected under `jit`.
 
@@ -314,10 +322,11 @@ def to_euler(q: ArrayLike, seq: str) -> Array:
     middle = 2.0 * jnp.arctan2(
         safe_norm(jnp.stack([c, d], axis=-1)), safe_norm(jnp.stack([a, b], axis=-1))
     )
-    # SciPy's 1e-7, widened to a few ulp of π where the dtype cannot resolve 1e-7 there (float32).
-    lock_eps = max(_GIMBAL_LOCK_EPS, 4.0 * math.pi * float(jnp.finfo(middle.dtype).eps))
-    at_zero = jnp.abs(middle) <= lock_eps
-    at_pi = jnp.abs(middle - jnp.pi) <= lock_eps
+    # SciPy's 1e-7; at π widened to a few ulp of π, where the dtype cannot resolve 1e-7 (float32).
+    # Near 0 float32 resolves far less than 1e-7, so the lock there keeps SciPy's threshold.
+    lock_eps_pi = max(_GIMBAL_LOCK_EPS, 4.0 * math.pi * float(jnp.finfo(middle.dtype).eps))
+    at_zero = jnp.abs(middle) <= _GIMBAL_LOCK_EPS
+    at_pi = jnp.abs(middle - jnp.pi) <= lock_eps_pi
     regular = ~(at_zero | at_pi)
     locked = jnp.where(at_zero, 2.0 * half_sum, (-2.0 if extrinsic else 2.0) * half_diff)
     zero = jnp.zeros_like(middle)
@@ -348,8 +357,9 @@ def from_two_vectors(a: ArrayLike, b: ArrayLike) -> Array:
     - for â·b̂ < 0, q = (cos(θ/2), sin(θ/2) n̂) with n̂ = c/|c| after removing from c the rounding
       component along â (c ⟂ â exactly in real arithmetic). θ from atan2 avoids the cancellation in
       1 + â·b̂, and n̂ ⟂ â keeps `rotate(a, q)` on the right side even when c is at rounding level.
-    - for exactly antiparallel inputs (c = 0) every half-turn about an axis ⟂ â is a shortest
-      rotation; the one about â × e is returned, e the basis vector least aligned with â.
+    - for antiparallel inputs (|c| ≤ 4 eps, i.e. to rounding) every half-turn about an axis ⟂ â is
+      a shortest rotation; the one about â × e is returned, e the basis vector least aligned with â
+      (the same with and without `jit`).
 
     **Arguments:**
 
@@ -375,7 +385,12 @@ def from_two_vectors(a: ArrayLike, b: ArrayLike) -> Array:
     # Obtuse: axis-angle form with the axis made exactly perpendicular to â.
     c_perp = c - jnp.sum(c * a_unit, axis=-1, keepdims=True) * a_unit
     s_sq = sum_squares(c_perp, keepdims=True)
-    has_axis = ~(s_sq <= 0)  # NaN takes the computing branch
+    # Antiparallel to rounding: under `jit` the compiler contracts the cross product into fused
+    # multiply-adds, and c of exactly antiparallel inputs comes out as noise of ~1e-16 (float64) in
+    # a random direction instead of 0 (measured ≤ 1.2 eps). Below 4 eps (an angle of ~1e-15 rad
+    # from antiparallel) the fallback axis is taken, so the result does not depend on compilation.
+    tiny = 4.0 * float(jnp.finfo(a.dtype).eps)
+    has_axis = ~(s_sq <= tiny * tiny)  # NaN takes the computing branch
     s = jnp.sqrt(jnp.where(has_axis, s_sq, jnp.ones_like(s_sq)))
     # The antiparallel fallback axis â × e, e the basis vector of â's smallest component.
     basis = jnp.eye(3, dtype=a.dtype)[jnp.argmin(jnp.abs(a_unit), axis=-1)]

@@ -464,3 +464,68 @@ def test_from_two_vectors_exactly_antiparallel_has_w_non_negative(dtype):
         q = jq.from_two_vectors(a, -a)
         assert float(q[0]) >= 0.0
         assert abs(float(jq.to_axis_angle(q)[1]) - math.pi) < 1e-6
+
+
+@pytest.mark.parametrize(
+    "dtype, lengths", [("float32", [1e-20, 1e20, 1e-30]), ("float64", [1e-170, 1e170, 1e-300])]
+)
+def test_from_axis_angle_normalises_axes_whose_squared_length_over_or_underflows(dtype, lengths):
+    """The closed form (cos θ/2, sin θ/2 n̂) for axes of any length the dtype holds: |axis|² under-
+    flowed to 0 (identity returned) or overflowed to inf (a non-unit (cos θ/2, 0, 0, 0)) before."""
+    angle = np.pi / 2
+    for length in lengths:
+        for axis in ([0.0, length, 0.0], [length, -2 * length, 2 * length]):
+            axis = np.asarray(axis, dtype)
+            n = np.asarray(axis, np.float64) / length
+            n /= np.linalg.norm(n)
+            want = np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * n])
+            q = jq.from_axis_angle(axis, np.asarray(angle, dtype))
+            assert q.dtype == dtype
+            np.testing.assert_allclose(np.asarray(q, np.float64), want, atol=1e-6)
+    # The derivative is the direction's: against central differences at an ordinary length.
+    axis = jnp.array([0.3, -1.2, 0.5])
+    jac = np.asarray(jax.jacfwd(jq.from_axis_angle)(axis, 0.7))
+    np.testing.assert_allclose(
+        np.asarray(jax.jacrev(jq.from_axis_angle)(axis, 0.7)), jac, atol=1e-14
+    )
+    h = 1e-6
+    fd = np.stack(
+        [
+            (jq.from_axis_angle(axis + h * e, 0.7) - jq.from_axis_angle(axis - h * e, 0.7))
+            / (2 * h)
+            for e in np.eye(3)
+        ],
+        -1,
+    )
+    np.testing.assert_allclose(jac, fd, atol=1e-9)
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_from_two_vectors_exactly_antiparallel_is_the_same_under_jit(dtype):
+    """Under `jit` the cross product of exactly antiparallel vectors is rounding noise (fused
+    multiply-adds), not 0: the documented half-turn about â × e must still be returned, as without
+    `jit`, with a bounded Jacobian (it was 1e16 in float64)."""
+    for a in ([1.0, 2.0, 3.0], [-0.3, 0.1, 0.7], [2.0, -5.0, 1.0]):
+        a = jnp.asarray(a, dtype)
+        for b in (-a, -2.5 * a):
+            eager = np.asarray(jq.from_two_vectors(a, b))
+            jitted = np.asarray(jax.jit(jq.from_two_vectors)(a, b))
+            np.testing.assert_allclose(jitted, eager, rtol=0, atol=4 * np.finfo(dtype).eps)
+            # â × e with e the basis vector of â's smallest |component|, as documented.
+            axis = np.cross(np.asarray(a, np.float64), np.eye(3)[np.argmin(np.abs(a))])
+            axis /= np.linalg.norm(axis)
+            np.testing.assert_allclose(jitted[1:], axis, atol=1e-6)
+            jac = jax.jit(jax.jacfwd(jq.from_two_vectors, argnums=1))(a, b)
+            assert np.max(np.abs(np.asarray(jac))) < 10.0 / float(jnp.linalg.norm(b))
+
+
+def test_to_euler_float32_near_zero_middle_angle_is_not_locked():
+    """float32 resolves middle angles near 0 far below 1e-7, so the gimbal-lock window there is
+    SciPy's 1e-7 (it was widened to 1.5e-6, as at π): SciPy's angles for a middle angle of 1e-6."""
+    angles = np.array([[1.2, 1e-6, -2.1], [-0.4, 5e-7, 2.5], [3.0, 1e-6, 0.3]])
+    for seq in ("ZXZ", "zyz", "XYX"):
+        q = Rotation.from_euler(seq, angles).as_quat(scalar_first=True).astype(np.float32)
+        theirs = Rotation.from_quat(q.astype(np.float64), scalar_first=True).as_euler(seq)
+        ours = np.asarray(jq.to_euler(q, seq), np.float64)
+        assert np.max(np.abs(wrapped(ours - theirs))) < 2e-6
+        assert quat_distance(jq.from_euler(seq, ours), q) < 5e-7
