@@ -7,10 +7,12 @@ that returns a *rotation* (rather than a point on the sphere) says how it treats
 from __future__ import annotations
 
 import math
+import operator
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from ._algebra import conjugate, multiply
@@ -62,7 +64,9 @@ def angle_between(p: ArrayLike, q: ArrayLike) -> Array:
     sign = jnp.where(w < 0, -1.0, 1.0).astype(q.dtype)[..., None]
     d = sign * q - p
     vector = p[..., :1] * d[..., 1:] - d[..., :1] * p[..., 1:] - cross(p[..., 1:], d[..., 1:])
-    return 2.0 * jnp.arctan2(safe_norm(vector), jnp.abs(w))
+    # |w| as w·sign(w): the same value, and the derivative sign(w), 0 at w = 0 (θ = π), where
+    # `jnp.abs` would take the one-sided 1.
+    return 2.0 * jnp.arctan2(safe_norm(vector), w * jnp.sign(w))
 
 
 def slerp(p: ArrayLike, q: ArrayLike, t: ArrayLike) -> Array:
@@ -208,10 +212,11 @@ def mean(
     batch_ndim = q.ndim - 1
     if axis is None:
         axis = tuple(range(batch_ndim))
-    elif isinstance(axis, int):
+    elif _is_int(axis):
         axis = (axis,)
-    if not isinstance(axis, tuple) or not all(isinstance(n, int) for n in axis):
+    if not isinstance(axis, tuple) or not all(_is_int(n) for n in axis):
         raise ValueError(f"`axis` must be None, an int or a tuple of ints; got {axis!r}.")
+    axis = tuple(operator.index(n) for n in axis)
     if any(not -batch_ndim <= n < batch_ndim for n in axis):
         raise ValueError(
             f"`axis` {axis} is out of range for the batch shape {tuple(q.shape[:-1])} of `q`."
@@ -238,6 +243,11 @@ def mean(
     moment = jnp.sum(outer, axis=axis)
     result = top_eigenvector(moment)
     return jnp.where(result[..., :1] < 0, -result, result)
+
+
+def _is_int(n) -> bool:
+    """An integer of any kind (Python, NumPy), not a bool (`True` is not axis 1)."""
+    return isinstance(n, (int, np.integer)) and not isinstance(n, (bool, np.bool_))
 
 
 def check_unit(q: ArrayLike, *, atol: float | None = None) -> Array:

@@ -322,3 +322,36 @@ def test_mean_of_non_unit_quaternions_matches_scipy():
     np.testing.assert_allclose(
         jq.to_rotvec(jq.mean(identity_and_scaled)), [0.0, 0.0, 0.5], atol=1e-12
     )
+
+
+def test_angle_between_gradient_at_a_half_turn_is_the_symmetric_subgradient():
+    """At θ = π (w(p* q) = 0) θ has a ridge: the one-sided derivatives w.r.t. q_w are ∓2/|q_v| (central
+    differences on either side); the documented choice is their mean, 0 — as for sign(w) — not the
+    one-sided −2 that `jnp.abs` gives at 0."""
+    p = jnp.array([1.0, 0.0, 0.0, 0.0])
+    q = jnp.array([0.0, 0.6, 0.8, 0.0])
+    f = lambda x: jq.angle_between(p, x)  # noqa: E731
+    np.testing.assert_array_equal(np.asarray(jax.grad(f)(q)), 0.0)
+    np.testing.assert_array_equal(np.asarray(jax.jacfwd(f)(q)), 0.0)
+    h = 1e-7
+    e = jnp.array([1.0, 0.0, 0.0, 0.0])
+    right = (f(q + 2 * h * e) - f(q + h * e)) / h
+    left = (f(q - h * e) - f(q - 2 * h * e)) / h
+    np.testing.assert_allclose([right, left], [-2.0, 2.0], rtol=1e-5)
+    # Away from the ridge the gradient is unchanged: d θ / d q_w = −2 sign(w)/|q_v| · (…) by FD.
+    q1 = jnp.array([0.1, 0.6, 0.8, 0.0])
+    fd = (f(q1 + h * e) - f(q1 - h * e)) / (2 * h)
+    np.testing.assert_allclose(jax.grad(f)(q1)[0], fd, rtol=1e-6)
+
+
+def test_mean_axis_accepts_numpy_integers_and_rejects_bools():
+    q = jq.random(jax.random.key(3), (2, 3))
+    np.testing.assert_array_equal(
+        np.asarray(jq.mean(q, axis=np.int64(0))), np.asarray(jq.mean(q, axis=0))
+    )
+    np.testing.assert_array_equal(
+        np.asarray(jq.mean(q, axis=(np.int32(-1),))), np.asarray(jq.mean(q, axis=1))
+    )
+    for axis in (True, (0, False), np.bool_(True)):
+        with pytest.raises(ValueError, match="`axis` must be None, an int or a tuple of ints"):
+            jq.mean(q, axis=axis)
