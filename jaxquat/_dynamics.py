@@ -264,8 +264,20 @@ def _inverse_inertia(inertia: Array) -> Array:
 
 
 def _euler_rhs(omega: Array, inertia: Array, inverse: Array, torque: Array | None) -> Array:
-    """ω̇ = I⁻¹(τ + (Iω) × ω) with a precomputed I⁻¹."""
-    moment = cross(_apply_inertia(inertia, omega, ("inertia", "omega")), omega)
+    """ω̇ = I⁻¹(τ + (Iω) × ω) with a precomputed I⁻¹.
+
+    For principal moments the gyroscopic term is written (I₂ − I₃) ω₂ ω₃ and cyclic, so it is exactly
+    0 about the axis of an axisymmetric body (I₂ = I₃): in the cross product form I₂ω₂ω₃ − I₃ω₃ω₂,
+    the compiler's fused multiply-adds leave a rounding residue that 1/I₁ amplifies (float32, a
+    slender body with I₁ = 1e-8: ω̇₁ = −1.1 instead of 0).
+    """
+    if _is_matrix(inertia):
+        moment = cross(_apply_inertia(inertia, omega, ("inertia", "omega")), omega)
+    else:
+        inertia, omega = broadcast_batch((inertia, 1, "inertia"), (omega, 1, "omega"))
+        i1, i2, i3 = inertia[..., 0], inertia[..., 1], inertia[..., 2]
+        w1, w2, w3 = omega[..., 0], omega[..., 1], omega[..., 2]
+        moment = jnp.stack([(i2 - i3) * w2 * w3, (i3 - i1) * w3 * w1, (i1 - i2) * w1 * w2], axis=-1)
     if torque is not None:
         moment = moment + torque
     return _apply_inertia(inverse, moment, ("inertia", "omega"))
@@ -513,6 +525,34 @@ def _shape_state(masses: Array, positions: Callable, t: Array) -> tuple[Array, A
     return _point_inertia(masses, relative), _moment(masses, cross(relative, v))
 
 
+def _check_not_collinear(masses: Array, positions: Callable, t0: Array) -> None:
+    """A `ValueError` when the shape at t0 is one point or a line (checked when concrete): its inertia
+    about the centre of mass is then singular, and the spin about that line is not determined."""
+    if is_tracer(masses) or is_tracer(t0):
+        return
+    x0 = positions(t0)
+    if is_tracer(x0):
+        return
+    m = np.asarray(masses, np.float64)
+    x = np.asarray(x0, np.float64)
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(m))):
+        return  # NaN in, NaN out
+    r = x - np.sum(m[:, None] * x, axis=0) / np.sum(m)
+    inertia = np.sum(
+        m[:, None, None]
+        * (np.sum(r * r, -1)[:, None, None] * np.eye(3) - r[:, :, None] * r[:, None, :]),
+        0,
+    )
+    moments = np.linalg.eigvalsh(inertia)
+    if moments[0] <= 8.0 * float(jnp.finfo(t0.dtype).eps) * moments[-1]:
+        what = "a single point" if moments[-1] <= 0 else "on one line"
+        raise ValueError(
+            f"`positions(t0)`: the point masses are {what} at t0, so the inertia about the centre "
+            f"of mass is singular (principal moments {moments.tolist()}), so its rotation is "
+            "undetermined; the body needs at least three points not on one line."
+        )
+
+
 def _deformable_field(masses: Array, positions: Callable):
     """(t, q, Π) → (ω_b, Π̇) with ω_b = I(t)⁻¹(Π − L_int(t)) and Π̇ = Π × ω_b."""
 
@@ -552,9 +592,12 @@ def simulate_deformable_body(
 
     **Arguments:**
 
-    - `masses`: positive masses, shape `(n,)`, n ≥ 1 (positivity checked when concrete).
+    - `masses`: positive masses, shape `(n,)`, n ≥ 3 (positivity checked when concrete).
     - `positions`: a callable `positions(t) -> (n, 3)` giving the body-frame shape; it must be
-      differentiable in t and traceable by JAX. Its centre of mass may move; it is removed.
+      differentiable in t and traceable by JAX. Its centre of mass may move; it is removed. The
+      points must not all lie on one line (nor coincide): I(t) is then singular and the spin about
+      that line undetermined — a `ValueError` when that holds at t0 and the inputs are concrete,
+      NaN from a time at which it happens later.
     - `q0`: initial orientation, shape `(4,)`.
     - `dt`, `num_steps`: the time step (a scalar) and the number of steps (a Python int ≥ 0).
     - `angular_momentum`: the conserved world-frame angular momentum about the centre of mass,
@@ -584,13 +627,19 @@ def simulate_deformable_body(
     dtype = q0.dtype  # the orientation's dtype governs, as in `integrate`
     t0 = _check_scalar(t0, "t0").astype(dtype)
     dt = _check_scalar(dt, "dt").astype(dtype)
-    shape = jax.eval_shape(positions, t0).shape
+    try:  # a nested list is an array too (as in the integration below)
+        shape = jax.eval_shape(lambda t: jnp.asarray(positions(t)), t0).shape
+    except TypeError as e:
+        raise ValueError(
+            f"`positions(t)` must return an array of shape (n, 3); calling it at t0 gave: {e}"
+        ) from None
     if shape != (masses.shape[0], 3):
         raise ValueError(
             f"`positions(t)` must return shape (n, 3) = ({masses.shape[0]}, 3) to match `masses`; "
             f"got shape {shape}."
         )
     _check_positive_masses(masses)
+    _check_not_collinear(masses, positions, t0)
     masses, q0 = masses.astype(dtype), q0.astype(dtype)
     if angular_momentum is None:
         momentum_world = jnp.zeros((3,), dtype)

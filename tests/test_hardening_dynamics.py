@@ -312,3 +312,90 @@ def test_rigid_body_vector_field_bad_state_names_the_part(y, match):
     field = jq.rigid_body_vector_field(MOMENTS)
     with pytest.raises(ValueError, match=match):
         field(0.0, y, None)
+
+
+# --------------------------------------------------------------------------------------------------
+# Review of 2026-11-25: exact gyroscopic term, degenerate deformable shapes
+
+
+def test_euler_equations_axisymmetric_slender_body_is_exact_under_jit():
+    """(I₂ − I₃) ω₂ ω₃ / I₁ is exactly 0 for I₂ = I₃; the cross-product form I₂ω₂ω₃ − I₃ω₃ω₂, once
+    XLA contracted it into a fused multiply-add, left a residue that 1/I₁ = 1e8 made ω̇₁ = −1.1."""
+    omega = jnp.array([0.3, -0.81234567, 0.5345678], jnp.float32)
+    for moments in ([1e-8, 1.0, 1.0], [1.0, 1e-8, 1.0], [1.0, 1.0, 1e-8]):
+        moments = jnp.asarray(moments, jnp.float32)
+        axis = int(np.argmin(moments))
+        rate = np.asarray(jax.jit(jq.euler_equations)(omega, moments))
+        assert rate[axis] == 0.0
+        # The others against the component form in float64.
+        i, w = np.asarray(moments, np.float64), np.asarray(omega, np.float64)
+        want = np.array(
+            [
+                (i[1] - i[2]) * w[1] * w[2] / i[0],
+                (i[2] - i[0]) * w[2] * w[0] / i[1],
+                (i[0] - i[1]) * w[0] * w[1] / i[2],
+            ]
+        )
+        np.testing.assert_allclose(np.delete(rate, axis), np.delete(want, axis), rtol=1e-6)
+
+
+def test_slender_axisymmetric_body_float32_matches_the_closed_form():
+    """Torque-free, I₂ = I₃ = I⊥: ω₁ is constant and (ω₂, ω₃) turns at λ = (I⊥ − I₁) ω₁ / I⊥ (Landau &
+    Lifshitz §33). With I₁ = 1e-6 in float32, ω₁ drifted by 1e-3 over 10 s before."""
+    i1, w0 = 1e-6, np.array([0.3, -0.8, 0.5])
+    moments = jnp.array([i1, 1.0, 1.0], jnp.float32)
+    dt, steps = 0.01, 1000
+    _, omegas = jq.simulate_rigid_body(
+        jnp.array([1.0, 0.0, 0.0, 0.0], jnp.float32),
+        jnp.asarray(w0, jnp.float32),
+        moments,
+        dt,
+        steps,
+    )
+    t = dt * np.arange(steps + 1)
+    lam = (1.0 - i1) * w0[0]
+    c, s = np.cos(lam * t), np.sin(lam * t)
+    want = np.stack([np.full_like(t, w0[0]), w0[1] * c + w0[2] * s, w0[2] * c - w0[1] * s], -1)
+    np.testing.assert_allclose(np.asarray(omegas[:, 0]), w0[0], rtol=0, atol=1e-7)
+    np.testing.assert_allclose(np.asarray(omegas, np.float64), want, rtol=0, atol=2e-5)
+
+
+@pytest.mark.parametrize(
+    "points",
+    [
+        [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]],  # a dumbbell
+        [[1.0, 2.0, 3.0]],  # one point
+        [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [3.0, 3.0, 3.0]],  # three on a line
+    ],
+)
+def test_deformable_body_on_one_line_raises(points):
+    """Collinear (or single) point masses have a singular inertia about the centre of mass: the spin
+    about the line is undetermined, and every state after the first was NaN."""
+    points = jnp.asarray(points)
+    with pytest.raises(ValueError, match=r"`positions\(t0\)`.*(on one line|single point)"):
+        jq.simulate_deformable_body(
+            jnp.ones(points.shape[0]), lambda t: points + 0.0 * t, jnp.array([1.0, 0, 0, 0]), 0.1, 2
+        )
+
+
+def test_deformable_body_positions_may_return_a_nested_list():
+    """A list is an array everywhere else (it was an AttributeError in the shape check)."""
+    triangle = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 2.0, 0.0]]
+    momentum = jnp.array([0.1, 0.2, 0.3])
+    args = (jnp.array([1.0, 2.0, 3.0]),)
+    q_list, _ = jq.simulate_deformable_body(
+        *args, lambda t: triangle, jnp.array([1.0, 0, 0, 0]), 0.1, 5, angular_momentum=momentum
+    )
+    q_array, _ = jq.simulate_deformable_body(
+        *args,
+        lambda t: jnp.asarray(triangle),
+        jnp.array([1.0, 0, 0, 0]),
+        0.1,
+        5,
+        angular_momentum=momentum,
+    )
+    np.testing.assert_array_equal(np.asarray(q_list), np.asarray(q_array))
+    with pytest.raises(
+        ValueError, match=r"`positions\(t\)` must return an array of shape \(n, 3\)"
+    ):
+        jq.simulate_deformable_body(*args, lambda t: "abc", jnp.array([1.0, 0, 0, 0]), 0.1, 5)
