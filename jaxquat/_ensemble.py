@@ -32,7 +32,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, ArrayLike
 
 from ._algebra import conjugate, multiply
-from ._dynamics import simulate_rigid_body
+from ._dynamics import _check_inertia as _check_rigid_inertia, simulate_rigid_body
 from ._integrate import LIE_METHODS, METHODS, _compensated_step, lie_step, scan_steps
 from ._numerics import (
     as_float_array,
@@ -522,11 +522,35 @@ def _data_file(path: str, name, where: str) -> str:
     return os.path.join(path, name)
 
 
-def _load_array(path: str, name, where: str) -> np.ndarray:
-    """The array in the data file `name` (see `_data_file`); an unreadable file is named."""
+def _load_array(path: str, name, where: str, label: str, shape: tuple, dtype) -> np.ndarray:
+    """The array in the data file `name` (see `_data_file`), which must hold `dtype[shape]`; an
+    unreadable or mismatched file is named (`label` says which, e.g. "record 0").
+
+    The header is read first, so a file whose header claims a huge shape is refused before anything
+    is allocated. bfloat16, which NumPy has no name for, is stored by `np.save` as 2-byte void records
+    (`|V2`) and read back as bfloat16.
+    """
     filename = _data_file(path, name, where)
+    dtype = np.dtype(dtype)
+    stored_as = np.dtype("V2") if dtype == jnp.bfloat16 else dtype
     try:
-        return np.load(filename, allow_pickle=False)
+        with open(filename, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            if version == (1, 0):
+                header = np.lib.format.read_array_header_1_0(f)
+            elif version == (2, 0):
+                header = np.lib.format.read_array_header_2_0(f)
+            else:
+                raise ValueError(f"unsupported .npy format version {version}")
+            file_shape, _, file_dtype = header
+            if tuple(file_shape) != tuple(shape) or file_dtype != stored_as:
+                shown = dtype if file_dtype == stored_as else file_dtype
+                raise _MalformedEnsemble(
+                    f"{name} ({label}) holds {shown}{list(file_shape)}, the index says "
+                    f"{dtype}{list(shape)}."
+                )
+            f.seek(0)
+            array = np.load(f, allow_pickle=False)
     except FileNotFoundError:
         raise _MalformedEnsemble(
             f"malformed jaxquat ensemble: {name}, {where}, is missing."
@@ -536,6 +560,11 @@ def _load_array(path: str, name, where: str) -> np.ndarray:
             f"malformed jaxquat ensemble: {name}, {where}, is not a readable .npy file "
             f"({type(e).__name__}: {e})."
         ) from None
+    except MemoryError:
+        raise _MalformedEnsemble(
+            f"{name}, {where}, holds {dtype}{list(shape)}: more than this machine can allocate."
+        ) from None
+    return array.view(dtype) if stored_as != dtype else array
 
 
 # What the writer's `finish` always writes (`total_angle`, `max_angle_from_start` with statistics).
@@ -674,25 +703,17 @@ def _read_ensemble(path: str, index_path: str) -> dict[str, Any]:
         parts = []
         for number, record in enumerate(records):
             name = record["files"][key]
-            part = _load_array(path, name, f"record {number} ({key})")
             expected = (len(record["steps"]),) + batch + (width,)
-            if part.shape != expected or part.dtype != dtype:
-                raise _MalformedEnsemble(
-                    f"{name} (record {number}) holds {part.dtype}{list(part.shape)}, the index says "
-                    f"{dtype}{list(expected)}."
-                )
+            part = _load_array(
+                path, name, f"record {number} ({key})", f"record {number}", expected, dtype
+            )
             finite = finite and bool(np.isfinite(part).all())  # one chunk's temporary at a time
             parts.append(part)
         out[key] = (
             np.concatenate(parts, axis=0) if parts else np.zeros((0,) + batch + (width,), dtype)
         )
     for key, name in final.items():
-        part = _load_array(path, name, f"final ({key})")
-        if part.shape != final_shapes[key] or part.dtype != dtype:
-            raise _MalformedEnsemble(
-                f"{name} ({key}) holds {part.dtype}{list(part.shape)}, the index says "
-                f"{dtype}{list(final_shapes[key])}."
-            )
+        part = _load_array(path, name, f"final ({key})", key, final_shapes[key], dtype)
         finite = finite and bool(np.isfinite(part).all())
         out[key] = part
     out["complete"] = complete
@@ -748,15 +769,8 @@ def _check_inertia(inertia: ArrayLike) -> tuple[Array, tuple[int, ...]]:
             "`inertia` must be principal moments (..., 3) or matrices (..., 3, 3); "
             f"got shape {tuple(inertia.shape)}."
         )
-    if not isinstance(inertia, jax.core.Tracer):
-        values = np.asarray(inertia, np.float64)
-        if len(batch) < values.ndim - 1:
-            values = np.linalg.eigvalsh(0.5 * (values + np.swapaxes(values, -1, -2)))
-        if not np.all(np.isfinite(values)) or np.any(values <= 0):
-            raise ValueError(
-                "`inertia` must be finite and positive definite (principal moments > 0)."
-            )
-    return inertia, batch
+    # Finiteness, symmetry and positivity (when concrete), with `simulate_rigid_body`'s check.
+    return _check_rigid_inertia(inertia), batch
 
 
 def _default_chunk(num_steps: int, num_bodies: int, save_every: int | None) -> int:
@@ -873,11 +887,12 @@ def simulate_ensemble(
         omega_fn = omega
         omega = jnp.zeros((3,), q0.dtype)
     omega = check_trailing(omega, 3, "omega")
-    dtype = jnp.result_type(q0, omega)
+    # The orientation's dtype governs, as in `integrate` and `simulate_rigid_body` (float32 bodies
+    # with a float64 NumPy inertia or ω stay float32).
+    dtype = q0.dtype
     shapes = [q0.shape[:-1], omega.shape[:-1]]
     if dynamic:
         inertia, inertia_batch = _check_inertia(inertia)
-        dtype = jnp.result_type(dtype, inertia)
         shapes.append(inertia_batch)
     try:
         batch = tuple(np.broadcast_shapes(*shapes))

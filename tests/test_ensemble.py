@@ -388,3 +388,54 @@ def test_streaming_memory_is_bounded_by_the_chunk(tmp_path):
     assert (after - before) * 1024 < 60e6, (before, after)
     data = load_ensemble(tmp_path / "run")
     assert data["states"].shape == (201, 50_000, 4) and data["complete"]
+
+
+@pytest.mark.parametrize("dynamic", [False, True])
+def test_bfloat16_run_round_trips(tmp_path, dynamic):
+    """np.save stores bfloat16 as 2-byte void records (|V2): the reader refused every bfloat16 run
+    although it lists bfloat16 as a dtype the index may name."""
+    q0 = jnp.asarray([[1.0, 0, 0, 0], [0.0, 1.0, 0, 0]], jnp.bfloat16)
+    omega = jnp.asarray([[0.5, -1.0, 2.0], [1.0, 0.0, 0.0]], jnp.bfloat16)
+    extra = {"inertia": jnp.asarray([1.0, 2.0, 3.0], jnp.bfloat16)} if dynamic else {}
+    result = simulate_ensemble(q0, omega, 0.01, 10, save_every=5, path=tmp_path / "run", **extra)
+    run = load_ensemble(tmp_path / "run")
+    assert run["states"].dtype == jnp.bfloat16 and run["states"].shape == (3, 2, 4)
+    assert run["finite"]
+    np.testing.assert_array_equal(run["final"], np.asarray(result.final))
+    np.testing.assert_array_equal(run["states"][-1], np.asarray(result.final))
+    if dynamic:
+        assert run["omegas"].dtype == jnp.bfloat16
+
+
+def test_a_header_claiming_a_huge_shape_is_refused_before_allocating(tmp_path):
+    """The .npy header is checked against the index before numpy allocates (a raw MemoryError of
+    2.9 TiB before); a file of the right shape but another dtype is named too."""
+    run = tmp_path / "run"
+    simulate_ensemble(np.tile([1.0, 0, 0, 0], (1, 1)), np.ones((1, 3)), 0.1, 4, path=run)
+    final = run / "final.npy"
+    good = final.read_bytes()
+    bad = good.replace(b"(1, 4)", b"(99999999999, 4)")
+    assert bad != good
+    final.write_bytes(bad)
+    with pytest.raises(ValueError, match=r"final\.npy \(final\) holds float64\[99999999999, 4\]"):
+        load_ensemble(run)
+    np.save(final, np.zeros((1, 4), np.float32))
+    with pytest.raises(ValueError, match=r"final\.npy \(final\) holds float32\[1, 4\], the index"):
+        load_ensemble(run)
+
+
+def test_rigid_ensemble_checks_inertia_and_keeps_the_orientation_dtype():
+    """The same inertia checks as `simulate_rigid_body` (a non-symmetric matrix ran silently), and
+    float32 bodies with a float64 NumPy inertia stay float32, as in `simulate_rigid_body`."""
+    q0, omega = np.tile([1.0, 0, 0, 0], (2, 1)), np.ones((2, 3))
+    with pytest.raises(ValueError, match="`inertia` must be a symmetric matrix"):
+        simulate_ensemble(q0, omega, 0.01, 5, inertia=[[2.0, 0.9, 0], [0, 2.0, 0], [0, 0, 3.0]])
+    with pytest.raises(ValueError, match="`inertia` must be positive definite"):
+        simulate_ensemble(q0, omega, 0.01, 5, inertia=[1.0, -2.0, 3.0])
+    q32, w32 = jnp.asarray(q0, jnp.float32), jnp.asarray(omega, jnp.float32)
+    moments = np.array([1.0, 2.0, 3.0])
+    result = simulate_ensemble(q32, w32, 0.01, 5, inertia=moments)
+    assert result.final.dtype == jnp.float32 and result.final_omega.dtype == jnp.float32
+    q_ref, w_ref = jaxquat.simulate_rigid_body(q32, w32, moments, 0.01, 5, save="final")
+    assert q_ref.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(result.final), np.asarray(q_ref), atol=1e-6)
