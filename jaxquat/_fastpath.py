@@ -219,14 +219,21 @@ def _run_all(step, carry, xs, num_steps, renormalize_every, unroll):
     trajectory is stored anyway, so nothing is checkpointed. Renormalisation is a per-step select:
     the loop is bound by writing the output, not by arithmetic.
     """
-    every = renormalize_every
+    every = (
+        renormalize_every
+        if renormalize_every is not None and renormalize_every <= num_steps
+        else None
+    )
 
     def advance(carry, k, x):
         carry = step(carry, x)
         if every is not None:
             due = (k + 1) % every == 0
+            # Normalised from a safe value when not due (double `where`): a zero (padded) body's
+            # NaN derivative times a zero cotangent would make every gradient NaN.
+            safe = jax.tree_util.tree_map(lambda c: jnp.where(due, c, jnp.ones_like(c)), carry)
             carry = jax.tree_util.tree_map(
-                lambda new, old: jnp.where(due, new, old), _normalize(carry), carry
+                lambda new, old: jnp.where(due, new, old), _normalize(safe), carry
             )
         return carry
 
@@ -721,7 +728,7 @@ def _constant_final(q0, omega, h, frame, num_steps, renormalize_every, unroll):
 @_constant_final.defjvp
 def _constant_final_jvp(frame, num_steps, renormalize_every, unroll, primals, tangents):
     from ._algebra import conjugate, inverse, multiply
-    from ._rotation import to_matrix
+    from ._rotation import from_rotvec, to_matrix, to_rotvec
 
     q0, omega, h = primals
     dq0, domega, dh = tangents
@@ -741,10 +748,22 @@ def _constant_final_jvp(frame, num_steps, renormalize_every, unroll, primals, ta
     zeta = (multiply(dr, conjugate(r)) if world else multiply(conjugate(r), dr))[..., 1:]
     spin = jnp.einsum("...ij,...j->...i" if world else "...ji,...j->...i", total, zeta)
     spin = jnp.concatenate([jnp.zeros_like(spin[..., :1]), spin], axis=-1)
-    if world:  # r^T = q_T ⊗ start⁻¹
-        tangent = multiply(spin, q_final) + multiply(q_final, multiply(inverse(start), dstart))
-    else:  # r^T = start⁻¹ ⊗ q_T
-        tangent = multiply(q_final, spin) + multiply(multiply(dstart, inverse(start)), q_final)
+    # r^T = q_T ⊗ start⁻¹ (world) or start⁻¹ ⊗ q_T (body); for a zero start (a padded body, without
+    # renormalisation) that is 0/0, and r^T = exp(T log r) is formed instead, only when some start
+    # is zero (`lax.cond`; the same rotation as the stepped powers to O(Tε)).
+    zero = jnp.all(start == 0, axis=-1, keepdims=True)
+    safe = jnp.where(zero, jnp.ones_like(start), start)
+    power = multiply(q_final, inverse(safe)) if world else multiply(inverse(safe), q_final)
+    if not renormalized:
+        power = lax.cond(
+            jnp.any(zero),
+            lambda: jnp.where(zero, from_rotvec(num_steps * to_rotvec(r)), power),
+            lambda: power,
+        )
+    if world:
+        tangent = multiply(spin, q_final) + multiply(power, dstart)
+    else:
+        tangent = multiply(q_final, spin) + multiply(dstart, power)
     return q_final, tangent
 
 

@@ -611,8 +611,9 @@ def sampled(omegas: ArrayLike, dt: ArrayLike, *, t0: ArrayLike = 0.0) -> Sampled
     `source(t)`, or by a diffrax solver — the module sees only the absolute time: a boundary belongs to
     the interval after it, and in float32 at |t| ≈ 10³ s times resolve only ~6e-5 s (samples then
     switch up to ~4 ε|t| early). With diffrax, integrate backwards over held samples with a solver whose
-    stages are interior (`ExpMidpoint`, `Magnus4/6/8`), not `LieEuler`, and count time from the first
-    sample (`t0=0`) in float32.
+    stages are all interior (`Magnus4/6/8`, exact there) — not `LieEuler` or `ExpMidpoint`, whose
+    first stage sits at the step's start, a boundary that then reads the sample after it (0.12 rad
+    off over one backward step) — and count time from the first sample (`t0=0`) in float32.
 
     **Reverse mode.** When `integrate` runs on the sampling grid (its `dt` and `t0` equal these, as
     Python numbers or concrete arrays), the samples are scanned over as per-step inputs and the gradient
@@ -916,14 +917,18 @@ def _integrate(
         xs = (rows[index[:-1]], rows[index[1:]] if 1.0 in fractions else None)
 
     lie = method in LIE_METHODS
-    renormalize = lie and renormalize_every is not None
+    # A run shorter than the interval never renormalises: no per-step select at all.
+    renormalize = lie and renormalize_every is not None and renormalize_every <= num_steps
 
     def time(k):
         return t0 + k.astype(time_dtype) * dt
 
     def renormalized(k, q):
         due = (k + 1) % renormalize_every == 0
-        return jnp.where(due, normalize(q), q), due
+        # The unused branch is normalised from a safe value (double `where`): q/|q| of a zero body
+        # (padding) is NaN, and its derivative times a zero cotangent made every gradient NaN.
+        safe = jnp.where(due, q, jnp.ones_like(q))
+        return jnp.where(due, normalize(safe), q), due
 
     def step_field(x):
         if x is None:

@@ -963,3 +963,62 @@ def test_constant_omega_trajectory_renormalises_like_stepping(frame, renormalize
         grad_fast = jax.grad(lambda *a: run(*a, False)[1], argnums=argnum)(q0, w)
         grad_general = jax.grad(lambda *a: run(*a, True)[1], argnums=argnum)(q0, w)
         np.testing.assert_allclose(grad_fast, grad_general, atol=1e-13)
+
+
+@pytest.mark.parametrize("method", ["euler", "midpoint", "cf4", "magnus4"])
+@pytest.mark.parametrize("save", ["final", "all"])
+@pytest.mark.parametrize("renormalize_every", [1000, None])
+def test_a_zero_padded_body_leaves_the_other_bodies_gradients_finite(
+    method, save, renormalize_every
+):
+    """A zero quaternion (a padded body) in the batch: the renormalisation select's unused branch
+    q/|q| was NaN there, and its derivative times a zero cotangent made the gradient w.r.t. a shared
+    ω NaN (even in a run too short to renormalise). The gradient must be that of the batch without
+    the padded body, which is its closed form for constant ω: d q_T/dω of exp(ω t) ⊗ q₀. (A run that
+    does renormalise turns a zero body into NaN, as documented: nothing is invented for q/|q|.)"""
+    q_body = jnp.array([0.5, 0.5, 0.5, 0.5])
+    padded = jnp.stack([q_body, jnp.zeros(4)])
+    omega = jnp.array([0.3, -0.2, 0.5])
+    dt, steps = 0.1, 10
+
+    def loss(w, q0):  # the first body only (the padded one is masked out)
+        qs = jq.integrate(
+            q0, w, dt, steps, method=method, save=save, renormalize_every=renormalize_every
+        )
+        return jnp.sum(qs[..., 0, :] @ jnp.array([1.0, -2.0, 0.5, 3.0]))
+
+    got = np.asarray(jax.grad(loss)(omega, padded))
+    want = np.asarray(jax.grad(loss)(omega, q_body[None]))
+    assert np.all(np.isfinite(got))
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
+
+    def exact(w):  # closed form of the same loss (constant ω: every method is exact up to rounding)
+        times = dt * (jnp.arange(steps + 1) if save == "all" else jnp.array([steps]))
+        qs = jax.vmap(lambda t: jq.multiply(jq.from_rotvec(w * t), q_body))(times)
+        return jnp.sum(qs @ jnp.array([1.0, -2.0, 0.5, 3.0]))
+
+    np.testing.assert_allclose(got, np.asarray(jax.grad(exact)(omega)), rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("frame", ["world", "body"])
+def test_constant_euler_final_derivative_at_a_zero_initial_state(frame):
+    """Without renormalisation q_T is linear in q₀ (r^T ⊗ q₀ or q₀ ⊗ r^T), so at q₀ = 0 its Jacobian is
+    the multiplication matrix of r^T = exp(ω T Δt) (it was NaN: r^T was formed as q_T ⊗ q₀⁻¹)."""
+    omega = jnp.array([0.3, -0.2, 0.5])
+    dt, steps = 0.1, 10
+
+    def f(q):
+        return jq.integrate(q, omega, dt, steps, frame=frame, save="final", renormalize_every=None)
+
+    power = np.asarray(jq.from_rotvec(omega * dt * steps))
+    w, x, y, z = power
+    left = np.array([[w, -x, -y, -z], [x, w, -z, y], [y, z, w, -x], [z, -y, x, w]])
+    right = np.array([[w, -x, -y, -z], [x, w, z, -y], [y, -z, w, x], [z, y, -x, w]])
+    want = left if frame == "world" else right
+    for jacobian in (jax.jacfwd, jax.jacrev):
+        np.testing.assert_allclose(np.asarray(jacobian(f)(jnp.zeros(4))), want, atol=1e-14)
+    # A batch mixing a zero and a unit body: the unit body's Jacobian is unchanged.
+    batch = jnp.stack([jnp.zeros(4), jnp.array([0.5, 0.5, 0.5, 0.5])])
+    jac = np.asarray(jax.jacfwd(f)(batch))
+    np.testing.assert_allclose(jac[0, :, 0], want, atol=1e-14)
+    np.testing.assert_allclose(jac[1, :, 1], want, atol=1e-14)
