@@ -533,22 +533,17 @@ def _check_not_collinear(masses: Array, positions: Callable, t0: Array) -> None:
     x0 = positions(t0)
     if is_tracer(x0):
         return
-    m = np.asarray(masses, np.float64)
-    x = np.asarray(x0, np.float64)
-    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(m))):
+    x0 = jnp.asarray(x0)
+    if not (np.all(np.isfinite(np.asarray(x0))) and np.all(np.isfinite(np.asarray(masses)))):
         return  # NaN in, NaN out
-    r = x - np.sum(m[:, None] * x, axis=0) / np.sum(m)
-    inertia = np.sum(
-        m[:, None, None]
-        * (np.sum(r * r, -1)[:, None, None] * np.eye(3) - r[:, :, None] * r[:, None, :]),
-        0,
+    moments = np.linalg.eigvalsh(
+        np.asarray(_point_inertia(masses, _centred(masses, x0)), np.float64)
     )
-    moments = np.linalg.eigvalsh(inertia)
     if moments[0] <= 8.0 * float(jnp.finfo(t0.dtype).eps) * moments[-1]:
         what = "a single point" if moments[-1] <= 0 else "on one line"
         raise ValueError(
             f"`positions(t0)`: the point masses are {what} at t0, so the inertia about the centre "
-            f"of mass is singular (principal moments {moments.tolist()}), so its rotation is "
+            f"of mass is singular (principal moments {moments.tolist()}): its rotation is "
             "undetermined; the body needs at least three points not on one line."
         )
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 import math
 
 import jax.numpy as jnp
-from jax import lax
 from jaxtyping import Array, ArrayLike
 
 from ._numerics import (
@@ -73,20 +72,17 @@ def from_axis_angle(axis: ArrayLike, angle: ArrayLike) -> Array:
     axis = check_trailing(axis, 3, "axis")
     angle = as_float_array(angle, "angle")
     axis, angle = broadcast_batch((axis, 1, "axis"), (angle, 0, "angle"))
-    # The axis is divided by its largest |component| first, so |axis|² can neither overflow nor
-    # underflow (a float32 axis of length 1e20 or 1e-20 has a direction too); the scale is held
-    # constant, as the direction does not depend on it.
-    scale = lax.stop_gradient(jnp.max(jnp.abs(axis), axis=-1, keepdims=True))
-    # `~(scale <= 0)`, not `scale > 0`: a NaN axis takes the computing branch and stays NaN.
-    has_axis = ~(scale <= 0)
-    scaled = axis / jnp.where(has_axis, scale, jnp.ones_like(scale))
-    norm_sq = sum_squares(scaled, keepdims=True)  # in [1, 3] for a non-zero axis
-    axis_norm = jnp.sqrt(jnp.where(has_axis, norm_sq, jnp.ones_like(norm_sq)))
-    unit = scaled / axis_norm
+    # `unit_vector` divides by the largest |component| first, so |axis|² can neither overflow nor
+    # underflow (a float32 axis of length 1e20 or 1e-20 has a direction too). A zero axis is replaced
+    # by a safe one (its angle is dropped below); a NaN axis is not all zero and stays NaN.
+    has_axis = ~jnp.all(axis == 0, axis=-1, keepdims=True)
+    unit = unit_vector(jnp.where(has_axis, axis, jnp.ones_like(axis)))
     # No axis, no rotation: the angle about a zero axis is dropped (else (cos θ/2, 0, 0, 0), not unit).
     # `0 * angle` rather than a literal 0 keeps a NaN angle NaN (its derivative is still 0).
     half = jnp.where(has_axis[..., 0], 0.5 * angle, 0.0 * angle)
-    half = jnp.where(jnp.isnan(axis_norm[..., 0]), jnp.nan, half)  # a NaN axis: NaN, w included
+    half = jnp.where(
+        jnp.any(jnp.isnan(axis), axis=-1), jnp.nan, half
+    )  # a NaN axis: NaN, w included
     return jnp.concatenate([jnp.cos(half)[..., None], jnp.sin(half)[..., None] * unit], axis=-1)
 
 
