@@ -15,10 +15,14 @@ from ._numerics import (
     check_shape,
     check_trailing,
     cos_half,
+    power_of_two_times,
+    prescale,
     safe_norm,
     sinc_half,
     sum_squares,
 )
+
+_LN2 = 0.6931471805599453
 
 
 def identity(shape: int | tuple[int, ...] = (), dtype=None) -> Array:
@@ -82,18 +86,26 @@ def conjugate(q: ArrayLike) -> Array:
 def norm(q: ArrayLike) -> Array:
     """The Euclidean norm |q| = √(w² + x² + y² + z²), shape `(...)`. Gradient 0 at q = 0; NaN in, NaN out."""
     q = check_trailing(q, 4, "q")
-    return safe_norm(q)
+    q, e = prescale(q)  # exact powers of two: |q| of any finite q the dtype holds, no overflow
+    return power_of_two_times(safe_norm(q), e)
 
 
 def inverse(q: ArrayLike) -> Array:
     """The inverse q⁻¹ = q*/|q|² (for unit quaternions, the conjugate). NaN for q = 0."""
     q = check_trailing(q, 4, "q")
-    return conjugate(q) / sum_squares(q, keepdims=True)
+    q, e = prescale(q)
+    return power_of_two_times(conjugate(q) / sum_squares(q, keepdims=True), -e[..., None])
 
 
 def normalize(q: ArrayLike) -> Array:
-    """q/|q|, the unit quaternion of the same rotation. NaN for q = 0 (nothing is invented)."""
+    """q/|q|, the unit quaternion of the same rotation, for any finite q the dtype holds (|q|² is not
+    formed from q itself when it would overflow or underflow). NaN for q = 0 (nothing is invented)."""
     q = check_trailing(q, 4, "q")
+    return unit_quaternion(prescale(q)[0])
+
+
+def unit_quaternion(q: Array) -> Array:
+    """q/|q| without validation or rescaling, for internal loops whose q is already near unit."""
     return q / jnp.sqrt(sum_squares(q, keepdims=True))
 
 
@@ -142,9 +154,10 @@ def log(q: ArrayLike) -> Array:
     (the axis of a half-turn of the 4-sphere is undefined); `log(0)` is −∞ in w.
     """
     q = check_trailing(q, 4, "q")
+    q, e = prescale(q)  # ln|q| = ln|q 2⁻ᵉ| + e ln 2; the vector part is scale-invariant
     w = q[..., 0]
     v = q[..., 1:]
     s_sq = sum_squares(v)
-    log_norm = 0.5 * jnp.log(s_sq + w * w)
+    log_norm = 0.5 * jnp.log(s_sq + w * w) + e.astype(q.dtype) * _LN2
     xyz = atan2_over(s_sq, w)[..., None] * v
     return jnp.concatenate([log_norm[..., None], xyz], axis=-1)

@@ -426,6 +426,15 @@ def _random_ensemble(seed: int, bodies: int, omega_mean, omega_scale: float, dty
     return q0, omega
 
 
+def _throughput(rate: float) -> str:
+    """Body-steps per second with three significant figures at any size (a 10-body run is not
+    "0.0 M")."""
+    for scale, prefix in ((1e9, "G "), (1e6, "M "), (1e3, "k ")):
+        if rate >= scale:
+            return f"{rate / scale:.3g} {prefix}body-steps/s"
+    return f"{rate:.3g} body-steps/s"
+
+
 def _percentiles(values, qs=(5, 50, 95)):
     import numpy as np
 
@@ -546,7 +555,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         ),
         ("devices", f"{len(jax.devices())} ({jax.devices()[0].platform})"),
         ("wall time", f"{result.seconds:.2f} s in {result.num_chunks} chunk(s), compile included"),
-        ("throughput", f"{result.throughput / 1e6:.1f} M body-steps/s"),
+        ("throughput", _throughput(result.throughput)),
     ]
     p5, p50, p95 = _percentiles(np.degrees(np.asarray(result.angle_from_start)))
     rows.append(("angle from start (5/50/95 %)", f"{p5:.2f}° / {p50:.2f}° / {p95:.2f}°"))
@@ -873,7 +882,7 @@ def run_demo(*, bodies: int, steps: int, output: str, seed: int, progress: bool)
     print(
         f"\n  energy drift (max relative, cf4): {drift:.1e}    "
         f"ensemble: {result.seconds:.1f} s compile included, "
-        f"{result.throughput / 1e6:.1f} M body-steps/s"
+        f"{_throughput(result.throughput)}"
     )
     error = np.linalg.norm(omega_fit - omega_true)
     print(

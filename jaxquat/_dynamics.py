@@ -36,7 +36,7 @@ from ._numerics import (
     is_tracer,
     sum_squares,
 )
-from ._rotation import from_matrix, rotate
+from ._rotation import from_matrix, rotate, rotate_unchecked
 
 # Methods usable with a state-dependent angular velocity (the Magnus methods need ω(t) independent of the state).
 _METHODS = ("euler", "midpoint", "cf4", "naive", "rk4")
@@ -343,8 +343,8 @@ def _rigid_body_field(inertia: Array, torque, frame: str):
         elif frame == "body":
             tau = _call_torque(torque, t, q, omega_body)
         else:
-            omega = rotate(omega_body, q)
-            tau = rotate(_call_torque(torque, t, q, omega), conjugate(q))
+            omega = rotate_unchecked(omega_body, q)
+            tau = rotate_unchecked(_call_torque(torque, t, q, omega), conjugate(q))
         return omega_body, _euler_rhs(omega_body, inertia, inverse, tau)
 
     return field
@@ -467,13 +467,13 @@ class _RigidBodyVectorField(eqx.Module):
         q = check_trailing(y[0], 4, "y[0] (q)")
         omega = check_trailing(y[1], 3, "y[1] (omega)")
         broadcast_batch((q, 1, "y[0] (q)"), (omega, 1, "y[1] (omega)"))  # a clear error, or nothing
-        omega_body = omega if self.frame == "body" else rotate(omega, conjugate(q))
+        omega_body = omega if self.frame == "body" else rotate_unchecked(omega, conjugate(q))
         field = _rigid_body_field(self.inertia, self.torque, self.frame)
         _, omega_dot_body = field(t, q, omega_body)
         if self.frame == "body":
             return rate(q, omega, frame="body"), omega_dot_body
         # d/dt (R ω_b) = R ω̇_b + ω × ω = R ω̇_b.
-        return rate(q, omega, frame="world"), rotate(omega_dot_body, q)
+        return rate(q, omega, frame="world"), rotate_unchecked(omega_dot_body, q)
 
 
 def rigid_body_vector_field(
@@ -660,7 +660,7 @@ def simulate_deformable_body(
     )
 
     def world_positions(t, q):
-        return rotate(_centred(masses, body_positions(t)), q)
+        return rotate_unchecked(_centred(masses, body_positions(t)), q)
 
     if save == "final":
         return final[0], world_positions(_times(t0, dt, num_steps, dtype), final[0])

@@ -43,7 +43,7 @@ from ._numerics import (
     safe_norm,
     sum_squares,
 )
-from ._rotation import rotate, to_rotvec
+from ._rotation import rotate_unchecked, to_rotvec
 
 _BODY_AXIS = "bodies"
 _FORMAT = "jaxquat-ensemble"
@@ -108,11 +108,11 @@ class EnsembleResult(eqx.Module):
 
 
 def _to_body(omega_world: Array, q: Array) -> Array:
-    return rotate(omega_world, conjugate(q))
+    return rotate_unchecked(omega_world, conjugate(q))
 
 
 def _to_world(omega_body: Array, q: Array) -> Array:
-    return rotate(omega_body, q)
+    return rotate_unchecked(omega_body, q)
 
 
 def _angle_between(p: Array, q: Array) -> Array:
@@ -230,8 +230,8 @@ def _dynamic_step_fn(config, dt, t0, q_start, offset):
         user_torque = torque
 
         def torque(t, q, omega_body):
-            tau_world = user_torque(t, q, rotate(omega_body, q))
-            return rotate(tau_world, conjugate(q))
+            tau_world = user_torque(t, q, rotate_unchecked(omega_body, q))
+            return rotate_unchecked(tau_world, conjugate(q))
 
     def step_fn(k, carry):
         q, omega_body, inertia, stats = carry

@@ -174,13 +174,18 @@ def _check_observations(times: ArrayLike, qs: ArrayLike, weights: ArrayLike | No
             raise ValueError(f"`weights` must be finite; got {np.asarray(weights)}.")
         if not is_tracer(weights) and np.any(np.asarray(weights) < 0):
             raise ValueError(f"`weights` must be non-negative; got minimum {np.min(weights)}.")
+        if not is_tracer(weights) and np.count_nonzero(np.asarray(weights)) < 2:
+            raise ValueError(
+                "`weights` must give at least two observations a positive weight (a rotation "
+                f"needs two orientations to be seen); got {np.count_nonzero(np.asarray(weights))}."
+            )
         sqrt_weights = jnp.sqrt(weights.astype(dtype))
     if not is_tracer(qs):
         _check_normalisable(np.asarray(qs), "qs")
-    # Scale each row by its largest component before normalising: |q|² neither overflows (1e160) nor
-    # underflows (1e-170) then, and q/|q| is unchanged.
-    scale = jnp.max(jnp.abs(qs), axis=-1, keepdims=True)
-    return times, normalize(qs / scale), sqrt_weights
+    # `normalize` brings rows of extreme magnitude (1e300, 1e-300) into range by an exact power of two
+    # first (dividing by the largest component instead made rows above ~4.5e307 NaN: XLA turns x/m
+    # into x·(1/m), and 1/m is then subnormal and flushed to zero).
+    return times, normalize(qs), sqrt_weights
 
 
 def _check_normalisable(qs: np.ndarray, name: str) -> None:
@@ -564,7 +569,8 @@ def fit_angular_velocity(
       knots bunch between two neighbouring observations or lie outside the observed times (checked
       when `knots` and `times` are concrete). Default: `max(minimum, min(20, T // 4))`.
     - `frame`: `"world"` or `"body"` (the frame ω is expressed in).
-    - `weights`: optional non-negative per-observation weights `(T,)` (e.g. 1/σₖ²).
+    - `weights`: optional non-negative per-observation weights `(T,)` (e.g. 1/σₖ²), at least two
+      of them positive.
     - `omega0`: optional starting guess: `(3,)`, or knot values `(K, 3)` for the time-varying models.
     - `substeps`: Magnus-4 steps per observation interval (time-varying models).
     - `solver`: an `optimistix` least-squares solver; default

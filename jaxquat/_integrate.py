@@ -36,7 +36,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike
 
-from ._algebra import multiply, normalize
+from ._algebra import multiply, unit_quaternion
 from ._fastpath import integrate_fast
 from ._kinematics import rate
 from ._numerics import (
@@ -310,7 +310,7 @@ def _ambient_step(method: str, field: Callable, t, q: Array, x: Any, h, frame: s
     hq = jnp.asarray(h).astype(q.dtype)
     if method == "naive":
         f1, g1 = _call_field(field, t, q, x)
-        return normalize(q + hq * rate(q, f1, frame=frame)), _tree_axpy(x, h, (1.0, g1))
+        return unit_quaternion(q + hq * rate(q, f1, frame=frame)), _tree_axpy(x, h, (1.0, g1))
     f1, g1 = _call_field(field, t, q, x)
     k1 = rate(q, f1, frame=frame)
     f2, g2 = _call_field(field, t + 0.5 * h, q + (0.5 * hq) * k1, _tree_axpy(x, h, (0.5, g1)))
@@ -319,7 +319,7 @@ def _ambient_step(method: str, field: Callable, t, q: Array, x: Any, h, frame: s
     k3 = rate(q + (0.5 * hq) * k2, f3, frame=frame)
     f4, g4 = _call_field(field, t + h, q + hq * k3, _tree_axpy(x, h, (1.0, g3)))
     k4 = rate(q + hq * k3, f4, frame=frame)
-    q1 = normalize(q + (hq / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4))
+    q1 = unit_quaternion(q + (hq / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4))
     x1 = _tree_axpy(x, h, (1.0 / 6.0, g1), (2.0 / 6.0, g2), (2.0 / 6.0, g3), (1.0 / 6.0, g4))
     return q1, x1
 
@@ -928,7 +928,7 @@ def _integrate(
         # The unused branch is normalised from a safe value (double `where`): q/|q| of a zero body
         # (padding) is NaN, and its derivative times a zero cotangent made every gradient NaN.
         safe = jnp.where(due, q, jnp.ones_like(q))
-        return jnp.where(due, normalize(safe), q), due
+        return jnp.where(due, unit_quaternion(safe), q), due
 
     def step_field(x):
         if x is None:

@@ -198,6 +198,39 @@ def unit_vector(x: Array) -> Array:
     return x / jnp.sqrt(sum_squares(x, keepdims=True))
 
 
+def _power_of_two(e: Array, dtype) -> tuple[Array, Array]:
+    """2^e as two factors that are each representable (2^e alone overflows for e near the dtype's
+    exponent range, e.g. 2^148 in float32 to bring a subnormal up to 1)."""
+    half = e // 2
+    one = jnp.ones((), dtype)
+    return jnp.ldexp(one, half), jnp.ldexp(one, e - half)
+
+
+def prescale(x: Array, axes: tuple[int, ...] = (-1,)) -> tuple[Array, Array]:
+    """(x·2⁻ᵉ, e): `x` scaled by an exact power of two so that products of its components can neither
+    overflow nor underflow, for scale-invariant formulas (normalisation, q v q⁻¹, 2/|q|²).
+
+    e is the binary exponent of the largest |component| over `axes` when that lies outside
+    [2⁻ᴸ, 2ᴸ], L = a quarter of the dtype's exponent range (float32: 32, float64: 256), so that a
+    float32 quaternion of norm 1e20 or 1e-20 is still a rotation; otherwise, and for zero, NaN or
+    infinite inputs, e = 0 and `x` is returned bit for bit. The factor is held constant under
+    differentiation: the formulas it feeds do not depend on it.
+    """
+    limit = jnp.finfo(x.dtype).maxexp // 4
+    big = jax.lax.stop_gradient(jnp.max(jnp.abs(x), axis=axes, keepdims=True))
+    _, e = jnp.frexp(big)
+    ordinary = ~jnp.isfinite(big) | (big == 0) | (jnp.abs(e) <= limit)
+    e = jnp.where(ordinary, jnp.zeros_like(e), e)
+    down1, down2 = _power_of_two(-e, x.dtype)
+    return x * down1 * down2, jnp.squeeze(e, axis=axes)
+
+
+def power_of_two_times(y: Array, e: Array) -> Array:
+    """y·2ᵉ exactly (the inverse of `prescale`'s factor; `e` broadcasts against `y`)."""
+    up1, up2 = _power_of_two(e, y.dtype)
+    return y * up1 * up2
+
+
 def safe_norm(x: Array, axis: int = -1, keepdims: bool = False) -> Array:
     """Euclidean norm whose gradient at `x = 0` is 0 instead of NaN.
 

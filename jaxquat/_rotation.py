@@ -18,6 +18,7 @@ from ._numerics import (
     check_trailing,
     cos_half,
     cross,
+    prescale,
     safe_atan2,
     safe_norm,
     sinc_half,
@@ -31,7 +32,8 @@ def rotate(v: ArrayLike, q: ArrayLike, center: ArrayLike | None = None) -> Array
     """Rotate vectors `v` by the quaternion `q` about `center`: v' = q (v − c) q⁻¹ + c.
 
     `q` need not be unit: q⁻¹ = q*/|q|² is used, so only the direction of q matters (the seed's
-    `rotate(v, q, center)`; with `center=None` the origin).
+    `rotate(v, q, center)`; with `center=None` the origin). Any finite nonzero q the dtype holds works:
+    one whose |q|² would overflow or underflow is first scaled by an exact power of two.
 
     **Arguments:**
 
@@ -51,14 +53,20 @@ def rotate(v: ArrayLike, q: ArrayLike, center: ArrayLike | None = None) -> Array
         v = v - center
     else:
         v, q = broadcast_batch((v, 1, "v"), (q, 1, "q"))
+    out = rotate_unchecked(v, prescale(q)[0])
+    if center is not None:
+        out = out + center
+    return out
+
+
+def rotate_unchecked(v: Array, q: Array) -> Array:
+    """q v q⁻¹ for broadcast `(..., 3)` and `(..., 4)` arrays, without validation or rescaling (for
+    internal loops whose q is near unit; `rotate` brings any finite q into range first)."""
     w = q[..., :1]
     u = q[..., 1:]
     scale = 2.0 / sum_squares(q, keepdims=True)
     uv = cross(u, v)
-    out = v + scale * (w * uv + cross(u, uv))
-    if center is not None:
-        out = out + center
-    return out
+    return v + scale * (w * uv + cross(u, uv))
 
 
 def from_axis_angle(axis: ArrayLike, angle: ArrayLike) -> Array:
@@ -89,10 +97,10 @@ def from_axis_angle(axis: ArrayLike, angle: ArrayLike) -> Array:
 def to_axis_angle(q: ArrayLike) -> tuple[Array, Array]:
     """The axis (unit, shape `(..., 3)`) and angle in [0, π] (shape `(...)`) of the rotation q.
 
-    `q` need not be unit. At the identity the axis is undefined and `(1, 0, 0)` is returned. A NaN
+    `q` need not be unit (any finite nonzero magnitude). At the identity the axis is undefined and `(1, 0, 0)` is returned. A NaN
     anywhere in `q` gives NaN axis and angle.
     """
-    q = check_trailing(q, 4, "q")
+    q = prescale(check_trailing(q, 4, "q"))[0]
     q = jnp.where(q[..., :1] < 0, -q, q)
     v = q[..., 1:]
     s = safe_norm(v)
@@ -120,23 +128,24 @@ def from_rotvec(r: ArrayLike) -> Array:
 
 
 def to_rotvec(q: ArrayLike) -> Array:
-    """The rotation vector r (|r| ≤ π) of the rotation q; `q` need not be unit.
+    """The rotation vector r (|r| ≤ π) of the rotation q; `q` need not be unit (any finite magnitude).
 
     r = 2·atan2(|v|, |w|)·sgn(w) v/|v|. Series-switched at the identity: value 0, Jacobian [0 | 2·I₃].
     """
-    q = check_trailing(q, 4, "q")
+    q = prescale(check_trailing(q, 4, "q"))[0]
     q = jnp.where(q[..., :1] < 0, -q, q)
     v = q[..., 1:]
     return (2.0 * atan2_over(sum_squares(v), q[..., 0]))[..., None] * v
 
 
 def to_matrix(q: ArrayLike) -> Array:
-    """The 3×3 rotation matrix R with R v = q v q⁻¹; `q` need not be unit (uses 2/|q|²).
+    """The 3×3 rotation matrix R with R v = q v q⁻¹; `q` need not be unit (uses 2/|q|², after
+    scaling an extreme q by a power of two so that |q|² neither overflows nor underflows).
 
     Example: `to_matrix([1, 2, 3, 4])` is the seed's table
     `[[-2/3, 2/15, 11/15], [2/3, -1/3, 2/3], [1/3, 14/15, 2/15]]`.
     """
-    q = check_trailing(q, 4, "q")
+    q = prescale(check_trailing(q, 4, "q"))[0]
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     s = 2.0 / sum_squares(q)
     xx, yy, zz = s * x * x, s * y * y, s * z * z
@@ -188,7 +197,9 @@ def from_matrix(m: ArrayLike) -> Array:
 
     Example: the seed's matrix of a π/4 turn about z gives `[0.92388, 0, 0, 0.38268]`.
     """
-    m = check_matrix(m, "m")
+    # The nearest rotation to s·M (s > 0) is that of M: an extreme scale is brought into range first
+    # (a float32 1e19·R made K's power step overflow).
+    m = prescale(check_matrix(m, "m"), axes=(-2, -1))[0]
     trace = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
     a = jnp.stack(
         [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]],
@@ -292,7 +303,8 @@ def to_euler(q: ArrayLike, seq: str) -> Array:
 
     **Arguments:**
 
-    - `q`: quaternions, shape `(..., 4)`; need not be unit (only the rotation matters); sign-invariant.
+    - `q`: quaternions, shape `(..., 4)`; need not be unit (only the rotation matters, at any finite
+      magnitude); sign-invariant.
     - `seq`: 3 axes; lower case extrinsic, upper case intrinsic (see `from_euler`).
 
     **Returns:** angles in radians, shape `(..., 3)`, in the order of `seq`.
@@ -302,7 +314,7 @@ def to_euler(q: ArrayLike, seq: str) -> Array:
     A NaN anywhere in `q` gives NaN angles.
     """
     extrinsic, axes = _parse_seq(seq)
-    q = check_trailing(q, 4, "q")
+    q = prescale(check_trailing(q, 4, "q"))[0]
     i, j, k = axes if extrinsic else axes[::-1]
     symmetric = i == k
     if symmetric:

@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -212,6 +213,10 @@ def test_simulate_from_toml_writes_a_readable_ensemble(tmp_path, capsys):
     )
     assert status == 0, err
     assert "300 kinematic bodies, 60 steps" in out and "throughput" in out
+    # 18,000 body-steps in about a second (compile included): three significant figures, not "0.0 M".
+    rate = re.search(r"throughput\s+([0-9.]+) ([kMG]?) ?body-steps/s", out)
+    assert rate is not None, out
+    assert float(rate.group(1)) > 0 and len(rate.group(1).replace(".", "").lstrip("0")) >= 2
     data = jaxquat.load_ensemble(output)
     assert data["complete"] and data["states"].shape == (7, 300, 4)
     # Every body turns about z at 1 rad/s: 3 rad after 60 steps of 0.05 s.

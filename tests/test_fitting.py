@@ -249,6 +249,29 @@ def test_zero_weights_remove_outliers(constant_case):
     assert float(np.min(np.asarray(fit.residual_angles)[bad])) > 1e-3  # still reported
 
 
+@pytest.mark.parametrize("positive", [0, 1])
+def test_weights_must_leave_two_observations(constant_case, positive):
+    """All-zero weights returned ω₀ with converged=True: nothing was fitted, and nothing said so."""
+    c = constant_case
+    weights = np.zeros(200)
+    weights[:positive] = 1.0
+    with pytest.raises(ValueError, match=rf"`weights` .* at least two .*got {positive}\."):
+        jaxquat.fit_angular_velocity(c["times"], c["exact"], weights=weights)
+
+
+def test_rows_of_extreme_magnitude_fit_like_unit_rows(constant_case):
+    """Rows are only directions: 4.6e307·q (its largest component above 1/2.2e-308, where XLA's
+    x/m = x·(1/m) flushed 1/m to zero and gave NaN) and 1e-300·q fit as q does."""
+    c = constant_case
+    reference = jaxquat.fit_angular_velocity(c["times"], c["noisy"])
+    big = c["noisy"] * (4.6e307 / np.max(np.abs(c["noisy"]), axis=-1, keepdims=True))
+    scaled = big.copy()
+    scaled[::2] = c["noisy"][::2] * 1e-300
+    fit = jaxquat.fit_angular_velocity(c["times"], scaled)
+    np.testing.assert_allclose(fit.omega, reference.omega, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(fit.residual_angles, reference.residual_angles, rtol=0, atol=1e-13)
+
+
 def test_fit_is_differentiable_in_the_data(constant_case):
     """Through optimistix's implicit adjoint: stretching time by s divides ω by s, so d ω̂/ds = −ω̂."""
     c = constant_case

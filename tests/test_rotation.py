@@ -529,3 +529,73 @@ def test_to_euler_float32_near_zero_middle_angle_is_not_locked():
         ours = np.asarray(jq.to_euler(q, seq), np.float64)
         assert np.max(np.abs(wrapped(ours - theirs))) < 2e-6
         assert quat_distance(jq.from_euler(seq, ours), q) < 5e-7
+
+
+# --- Extreme magnitudes: a quaternion of any normal magnitude is still a rotation ----------------------
+
+_EXTREME = [
+    (np.float32, 1e25),  # |q|² overflows float32 (> 3.4e38)
+    (np.float32, 1e-25),  # |q|² underflows to 0 (flushed subnormal)
+    (np.float32, 1e38),
+    (np.float64, 1e200),
+    (np.float64, 1e-200),
+]
+
+
+@pytest.mark.parametrize("dtype, scale", _EXTREME)
+@pytest.mark.parametrize("compile", [False, True], ids=["eager", "jit"])
+def test_conversions_of_extreme_magnitude_match_scipy(dtype, scale, compile):
+    rng = np.random.default_rng(11)
+    unit = rng.normal(size=(6, 4))
+    unit /= np.linalg.norm(unit, axis=-1, keepdims=True)
+    v = rng.normal(size=(6, 3))
+    ref = Rotation.from_quat(unit[:, [1, 2, 3, 0]])
+    q = jnp.asarray(unit * scale, dtype)
+    tol = 2e-6 if dtype == np.float32 else 2e-15
+    wrap = jax.jit if compile else (lambda f: f)
+    got = {
+        "normalize": (wrap(jq.normalize)(q), unit),
+        "to_matrix": (wrap(jq.to_matrix)(q), ref.as_matrix()),
+        "to_rotvec": (wrap(jq.to_rotvec)(q), ref.as_rotvec()),
+        "to_euler": (wrap(lambda q: jq.to_euler(q, "zyx"))(q), ref.as_euler("zyx")),
+        "rotate": (wrap(jq.rotate)(jnp.asarray(v, dtype), q), ref.apply(v)),
+        "to_axis_angle": (
+            wrap(lambda q: jq.to_axis_angle(q)[0] * jq.to_axis_angle(q)[1][..., None])(q),
+            ref.as_rotvec(),
+        ),
+        "norm/scale": (np.asarray(wrap(jq.norm)(q), np.float64) / scale, np.ones(6)),
+        "log[w] - ln(scale)": (wrap(jq.log)(q)[:, 0] - math.log(scale), np.zeros(6)),
+        "from_matrix(scale R)": (
+            jq.canonicalize(wrap(jq.from_matrix)(jnp.asarray(ref.as_matrix() * scale, dtype))),
+            np.where(unit[:, :1] < 0, -unit, unit),
+        ),
+    }
+    if scale < 1e30:  # 1/1e38 is subnormal in float32, and XLA flushes subnormals to zero
+        got["inverse * scale"] = (
+            np.asarray(wrap(jq.inverse)(q), np.float64) * scale,
+            unit * [1, -1, -1, -1],
+        )
+    for name, (value, expected) in got.items():
+        value = np.asarray(value, np.float64)
+        # ln(1e±25) ≈ ±58 in float32 carries 4e-6 of round-off
+        limit = 30 * tol if name.startswith("log") else tol
+        assert value.dtype == np.float64 and np.all(np.isfinite(value)), name
+        np.testing.assert_allclose(value, expected, rtol=0, atol=limit, err_msg=name)
+
+
+@pytest.mark.parametrize("dtype, scale", [(np.float32, 1e25), (np.float64, 1e-200)])
+def test_derivatives_at_extreme_magnitude_are_the_scaled_unit_ones(dtype, scale):
+    # Every conversion is homogeneous of degree 0 in q, so d f(s u)/dq = f'(u)/s.
+    unit = jnp.asarray([0.3, -0.5, 0.7, 0.4], dtype)
+    unit = unit / jnp.sqrt(jnp.sum(unit * unit))
+    v = jnp.asarray([0.2, -1.0, 0.6], dtype)
+    for name, f in [
+        ("to_matrix", lambda q: jq.to_matrix(q)[0, 1]),
+        ("to_rotvec", lambda q: jq.to_rotvec(q)[2]),
+        ("rotate", lambda q: jq.rotate(v, q)[1]),
+        ("normalize", lambda q: jq.normalize(q)[3]),
+    ]:
+        at_scale = np.asarray(jax.grad(f)(unit * jnp.asarray(scale, dtype)), np.float64) * scale
+        at_unit = np.asarray(jax.grad(f)(unit), np.float64)
+        tol = 1e-5 if dtype == np.float32 else 1e-14
+        np.testing.assert_allclose(at_scale, at_unit, rtol=0, atol=tol, err_msg=name)
