@@ -660,7 +660,7 @@ def simulate_deformable_body(
     )
 
     def world_positions(t, q):
-        return rotate_unchecked(_centred(masses, body_positions(t)), q)
+        return rotate(_centred(masses, body_positions(t)), q)
 
     if save == "final":
         return final[0], world_positions(_times(t0, dt, num_steps, dtype), final[0])
