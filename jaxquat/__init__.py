@@ -98,6 +98,7 @@ from ._solvers import (
     ExpMidpoint as ExpMidpoint,
     LieCubicInterpolation as LieCubicInterpolation,
     LieEuler as LieEuler,
+    LiePolynomialInterpolation as LiePolynomialInterpolation,
     Magnus4 as Magnus4,
     Magnus6 as Magnus6,
     Magnus8 as Magnus8,

@@ -269,7 +269,11 @@ def test_orders_norm_and_dense_output(solver, frame, low, high):
     assert low <= order_back <= high, order_back
     assert norm_dev <= 1e-14
     assert dense_norm_dev <= 1e-12
-    if isinstance(solver, jq.RKMK45) or (isinstance(solver, (jq.Magnus6, jq.Magnus8)) and low > 5):
+    if isinstance(solver, jq.RKMK45):
+        # Tsitouras' continuous extension in the Lie algebra: between steps as accurate as at them
+        # (measured 5.4; the cubic Hermite interpolant it replaced gave 4.0).
+        assert dense_order >= 4.8, dense_order
+    elif isinstance(solver, (jq.Magnus6, jq.Magnus8)) and low > 5:
         assert dense_order >= 3.0, dense_order
 
 
@@ -316,6 +320,53 @@ def test_rkmk45_adaptive_rigid_body():
     # Energy and |I ω| are conserved by the exact flow; the ω part is Tsit5 itself.
     energy = lambda w: float(jnp.sum(INERTIA * w * w))  # noqa: E731
     assert abs(energy(ours.ys[1][-1]) / energy(y0[1]) - 1.0) < 5e-8
+
+
+def test_rkmk45_saveat_ts_is_as_accurate_as_its_steps():
+    """`SaveAt(ts=...)` between adaptive steps: the dense output is the Lie-algebra form of Tsit5's
+    continuous extension, so reading out at ts costs no accuracy (the cubic Hermite interpolant it
+    replaced was 130× worse than the steps at tol 1e-10). Both leaves of a tuple state."""
+    term = diffrax.ODETerm(jq.kinematic_vector_field(Coning("world"), frame="world"))
+    t1, tol = 5.3, 1e-10
+    ts = jnp.linspace(0.0, t1, 203)
+    errors = {}
+    for name, solver in (("ours", jq.RKMK45()), ("stock", diffrax.Tsit5())):
+        sol = diffrax.diffeqsolve(
+            term,
+            solver,
+            0.0,
+            t1,
+            None,
+            coning_exact(0.0),
+            stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol),
+            saveat=diffrax.SaveAt(ts=ts),
+            max_steps=4096,
+        )
+        errors[name] = float(np.max(angle(sol.ys, coning_exact(ts))))
+    assert errors["ours"] <= 2.0 * errors["stock"], errors  # measured 1.4e-10 vs 1.5e-10
+    # The rigid body's ω leaf through the same extension, against Tsit5 at 1e-13.
+    rigid = diffrax.ODETerm(_rigid_body)
+    y0 = (jq.from_rotvec(jnp.array([0.3, -0.2, 0.5])), jnp.array([0.5, 1.0, 2.0]))
+    ts = jnp.linspace(0.0, 9.7, 97)
+
+    def solve(solver, tol):
+        return diffrax.diffeqsolve(
+            rigid,
+            solver,
+            0.0,
+            9.7,
+            None,
+            y0,
+            stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol),
+            saveat=diffrax.SaveAt(ts=ts),
+            max_steps=4096,
+        ).ys
+
+    reference = solve(diffrax.Tsit5(), jnp.asarray(1e-13))
+    ours, stock = solve(jq.RKMK45(), 1e-8), solve(diffrax.Tsit5(), jnp.asarray(1e-8))
+    # Measured: attitude 7.3e-8 (Tsit5 7.5e-8), ω 1.05e-7 (Tsit5 9.9e-8) rad, the global error.
+    assert np.max(angle(ours[0], reference[0])) <= 2.0 * np.max(angle(stock[0], reference[0]))
+    assert np.max(np.abs(ours[1] - reference[1])) <= 2.0 * np.max(np.abs(stock[1] - reference[1]))
 
 
 # ----------------------------------------------------------------------------------------------------
