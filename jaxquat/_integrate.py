@@ -667,7 +667,13 @@ def _check_scalar(x: ArrayLike, name: str) -> Array:
 
 def _depends_on_q(omega: Callable, t, q: Array) -> bool:
     """Whether the output of `omega(t, q)` depends on q (a conservative data-flow check on its jaxpr)."""
-    closed = jax.make_jaxpr(lambda q_: omega(t, q_))(q)
+    return _depends_on(lambda q_: omega(t, q_), q)
+
+
+def _depends_on(fn: Callable, *operands) -> bool:
+    """Whether the output of `fn(*operands)` depends on any leaf of the operands (a conservative
+    data-flow check on its jaxpr)."""
+    closed = jax.make_jaxpr(fn)(*operands)
     jaxpr = closed.jaxpr
     dependent = set(jaxpr.invars)
 

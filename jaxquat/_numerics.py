@@ -345,13 +345,17 @@ def atan2_over(s_sq: ArrayLike, w: ArrayLike) -> Array:
     s_sq = jnp.asarray(s_sq)
     w = jnp.asarray(w)
     x_threshold = 1e-4 if s_sq.dtype == jnp.float64 else 1e-2
-    safe_w = jnp.where(w > 0, w, jnp.ones_like(w))
-    x = s_sq / (safe_w * safe_w)
-    use_series = (w > 0) & (x < x_threshold)
+    # The switch compares s² with w²·threshold (no division, so nothing overflows for tiny w). The
+    # series is then evaluated on inputs masked to a harmless point outside its lanes: near a
+    # half-turn (w ≈ 0⁺, e.g. float32 cos(π/2) = −4.4e-8 flipped to w ≥ 0) the unmasked x = s²/w²
+    # made x⁴ overflow, and the unused branch's inf·0 turned reverse-mode gradients NaN.
+    use_series = (w > 0) & (s_sq < x_threshold * (w * w))
+    series_w = jnp.where(use_series, w, jnp.ones_like(w))
+    x = jnp.where(use_series, s_sq, jnp.zeros_like(s_sq)) / (series_w * series_w)
     safe_s_sq = jnp.where(use_series | (s_sq <= 0), jnp.ones_like(s_sq), s_sq)
     s = jnp.sqrt(safe_s_sq)
     direct = jnp.arctan2(jnp.where(s_sq <= 0, jnp.zeros_like(s), s), w) / s
-    series = _polyval((1.0, -1.0 / 3.0, 1.0 / 5.0, -1.0 / 7.0, 1.0 / 9.0), x) / safe_w
+    series = _polyval((1.0, -1.0 / 3.0, 1.0 / 5.0, -1.0 / 7.0, 1.0 / 9.0), x) / series_w
     return jnp.where(use_series, series, direct)
 
 

@@ -44,6 +44,7 @@ from ._integrate import (
     _GL4_SPREAD,
     _STAGE_FRACTIONS,
     _check_scalar,
+    _depends_on,
     _depends_on_q,
     magnus6_exponent,
     magnus8_exponent,
@@ -693,8 +694,22 @@ class _Magnus(diffrax.AbstractSolver):
         check_frame(self.frame)
 
     def init(self, terms, t0, t1, y0, args):
-        q0, _, _ = self._split(y0)
+        q0, x0, treedef = self._split(y0)
+        name = type(self).__name__
+        if x0 and _depends_on(lambda *xs: terms.vf(t0, _join(treedef, q0, xs), args), *x0):
+            # E.g. a rigid body (q, ω): ω evolves, and frozen at the step start it gives order 1.
+            raise ValueError(
+                f"the vector field depends on the state's other leaves `x` of `y0 = (q, x)`, but "
+                f"{name} needs rates that are given functions of time (they are evaluated at the "
+                "Gauss points with the state frozen: order 1 otherwise); use CF4 or RKMK45."
+            )
         field = _kinematic_field_of(terms)
+        if field is not None and field.frame != self.frame:
+            raise ValueError(
+                f"{name}(frame={self.frame!r}) was given a {field.frame}-frame kinematic field; pass "
+                f"`frame={field.frame!r}` (Magnus composes ω in the solver's frame: a mismatch drops "
+                "to order 2)."
+            )
         if field is not None and callable(field.omega):
             omega = field.omega
             if field.omega_takes_args:

@@ -599,3 +599,42 @@ def test_derivatives_at_extreme_magnitude_are_the_scaled_unit_ones(dtype, scale)
         at_unit = np.asarray(jax.grad(f)(unit), np.float64)
         tol = 1e-5 if dtype == np.float32 else 1e-14
         np.testing.assert_allclose(at_scale, at_unit, rtol=0, atol=tol, err_msg=name)
+
+
+@pytest.mark.parametrize(
+    "dtype, offset", [(np.float32, 0.0), (np.float32, 1e-6), (np.float64, 1e-12)]
+)
+def test_reverse_mode_derivatives_at_a_half_turn_are_the_closed_forms(dtype, offset):
+    """float32 `from_axis_angle(z, π)` has w = cos(π/2) = −4.4e-8, flipped to w > 0: the series branch
+    of atan2(s, w)/s, unused there, overflowed in x = s²/w² and made `grad` NaN for to_rotvec, log,
+    slerp and angular_velocity (within ~1e-5 rad of π in float32; `jacfwd` was finite)."""
+    z = jnp.asarray([0.0, 0.0, 1.0], dtype)
+    a = jnp.asarray(np.pi - offset, dtype)
+
+    def turn(angle):
+        return jq.from_axis_angle(z, angle)
+
+    cases = {
+        # d/da of (rotation vector)_z = a, of (log)_z = a/2, of ω_z = a/Δt, of slerp(1, R_z(a), ½)_z
+        # = sin(a/4) (no half-turn flip: w > 0 here, or the shortest path is the same arc).
+        "to_rotvec": (lambda a: jq.to_rotvec(turn(a))[2], 1.0),
+        "log": (lambda a: jq.log(turn(a))[3], 0.5),
+        "angular_velocity": (
+            lambda a: jq.angular_velocity(jnp.stack([jq.identity(dtype=dtype), turn(a)]), 0.1)[
+                0, 2
+            ],
+            10.0,
+        ),
+    }
+    tol = 1e-5 if dtype == np.float32 else 1e-12
+    for name, (f, expected) in cases.items():
+        assert abs(float(jax.grad(f)(a)) - expected) <= tol, name
+    q = turn(a)
+    gradient = np.asarray(jax.grad(lambda q: jnp.sum(jq.to_rotvec(q)))(q))
+    assert np.all(np.isfinite(gradient))
+    forward = np.asarray(jax.jacfwd(lambda q: jnp.sum(jq.to_rotvec(q)))(q))
+    np.testing.assert_allclose(gradient, forward, rtol=1e-6, atol=1e-6)
+    # slerp halfway: the z-component is ±sin(a/4) along the arc from the identity (the sign depends on
+    # which of q, −q is nearer, which float32's w = −4.4e-8 at π leaves to rounding): slope ±cos(a/4)/4.
+    slope = float(jax.grad(lambda a: jq.slerp(jq.identity(dtype=dtype), turn(a), 0.5)[3])(a))
+    assert np.isfinite(slope) and abs(abs(slope) - np.cos(float(a) / 4) / 4) <= tol
