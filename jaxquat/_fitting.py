@@ -628,6 +628,8 @@ def fit_angular_velocity(
         if omega0.shape not in value_shapes:
             expected = " or ".join(str(s) for s in value_shapes)
             raise ValueError(f"`omega0` must have shape {expected}; got {tuple(omega0.shape)}.")
+        if not is_tracer(omega0) and not np.all(np.isfinite(np.asarray(omega0))):
+            raise ValueError(f"`omega0` must be finite; got {np.asarray(omega0)}.")
         omega0 = jnp.broadcast_to(omega0, value_shapes[-1])
     return _fit(
         times,
@@ -700,6 +702,8 @@ def _fit(
         )
         q0, omega, fitted = _curve_model(params, times, reference, knots, frame, model, substeps)
     residual_angles, loss = _statistics(fitted, observed, sqrt_weights, frame)
+    # Traced weights escape the ValueError for fewer than two positive ones: nothing was fitted then.
+    converged = converged & (jnp.sum(sqrt_weights > 0) >= 2)
     return AngularVelocityFit(
         omega=omega,
         q0=q0,
@@ -846,6 +850,8 @@ def fit_rigid_body(
             value = as_float_array(value, name).astype(dtype)
             if value.shape != (3,):
                 raise ValueError(f"`{name}` must have shape (3,); got {tuple(value.shape)}.")
+            if not is_tracer(value) and not np.all(np.isfinite(np.asarray(value))):
+                raise ValueError(f"`{name}` must be finite; got {np.asarray(value)}.")
         starts.append(value)
     inertia0, omega0 = starts
     if inertia0 is not None and not is_tracer(inertia0) and np.any(np.asarray(inertia0) <= 0):
@@ -887,6 +893,7 @@ def _fit_rigid_body(
     args = (times, observed, sqrt_weights, reference)
     residual_fn = functools.partial(_rigid_body_residuals, method=method, substeps=substeps)
     params, num_steps, converged = _solve(residual_fn, params0, args, solver, max_steps, polish)
+    converged = converged & (jnp.sum(sqrt_weights > 0) >= 2)  # as in fit_angular_velocity
     q0, inertia, fitted = _rigid_body_model(params, times, reference, method, substeps)
     residual_angles, loss = _statistics(fitted, observed, sqrt_weights, "body")
     return RigidBodyFit(

@@ -259,6 +259,41 @@ def test_weights_must_leave_two_observations(constant_case, positive):
         jaxquat.fit_angular_velocity(c["times"], c["exact"], weights=weights)
 
 
+def test_traced_weights_leaving_fewer_than_two_observations_do_not_converge(constant_case):
+    """Under jit/vmap the weights are not seen at trace time: an all-zero lane returned ω₀ with
+    converged=True (loss 0). It must say it did not converge; the other lanes are unaffected."""
+    c = constant_case
+    lanes = np.ones((3, 200))
+    lanes[0] = 0.0
+    lanes[1, 1:] = 0.0
+    fits = jax.vmap(
+        lambda w: jaxquat.fit_angular_velocity(
+            c["times"], c["exact"], weights=w, omega0=c["omega"] + 0.05
+        )
+    )(jnp.asarray(lanes))
+    assert fits.converged.tolist() == [False, False, True]
+    assert float(np.max(np.abs(fits.omega[2] - c["omega"]))) <= 1e-10
+
+
+@pytest.mark.parametrize(
+    "call, name",
+    [
+        (
+            lambda c: jaxquat.fit_angular_velocity(c["times"], c["exact"], omega0=[np.nan, 0, 0]),
+            "omega0",
+        ),
+        (
+            lambda c: jaxquat.fit_rigid_body(c["times"], c["exact"], inertia0=[np.nan, 1, 2]),
+            "inertia0",
+        ),
+        (lambda c: jaxquat.fit_rigid_body(c["times"], c["exact"], omega0=[0, np.inf, 0]), "omega0"),
+    ],
+)
+def test_non_finite_starting_guesses_are_refused(constant_case, call, name):
+    with pytest.raises(ValueError, match=rf"`{name}` must be finite"):
+        call(constant_case)
+
+
 def test_rows_of_extreme_magnitude_fit_like_unit_rows(constant_case):
     """Rows are only directions: 4.6e307·q (its largest component above 1/2.2e-308, where XLA's
     x/m = x·(1/m) flushed 1/m to zero and gave NaN) and 1e-300·q fit as q does."""
