@@ -779,9 +779,11 @@ class Magnus4(_Magnus):
 
     The rates are recovered from the term at the step's initial state, $u_i = 2\,\mathrm{vec}(h\dot q_i ⊗ q_n^*)$
     (world) or $2\,\mathrm{vec}(q_n^* ⊗ h\dot q_i)$ (body), so `frame` must be the frame in which ω is a
-    given function of time: a world-frame Magnus step fed body-frame rates drops to order 2. Other
-    leaves of a tuple state `(q, x)` are integrated by two-point Gauss quadrature (their derivative,
-    too, must not depend on the state). Not for state-dependent ω (use `CF4` or `RKMK45`), and not under
+    given function of time: a world-frame Magnus step fed body-frame rates drops to order 2 (a jaxquat
+    kinematic field of the other frame is a `ValueError`). Other leaves of a tuple state `(q, x)` are
+    integrated by two-point Gauss quadrature (their derivative, too, must not depend on the state; a
+    field that reads `x` is a `ValueError`). Not for state-dependent ω (use `CF4` or `RKMK45`; an ω(t, q)
+    of a jaxquat field is a `ValueError`, one hidden in another term cannot be seen), and not under
     `diffrax.BacksolveAdjoint` (the adjoint state depends on the state). Dense output: the Magnus
     expansion of the linear interpolant of ω through the two Gauss points (on the sphere).
 
