@@ -511,7 +511,7 @@ class _RKMK(diffrax.AbstractSolver):
             # i.e. the same measure a stock solver applies to the quaternion's components.
             err_q = multiply(from_vector(0.5 * _lin(tab.b_error, big_k)), q1)
             y_error = _join(treedef, err_q, err_x)
-        if self.dense is not None and len(self.dense) == len(big_k):
+        if self.dense is not None:
             # The tableau's continuous extension, V(s) = Σ b_i(s) K_i (the RKMK step is the tableau
             # applied to the ODE of V, so its dense output is V's).
             powers = list(zip(*self.dense, strict=True))  # powers[p-1] = (β_1p, …, β_np)
