@@ -20,6 +20,7 @@ from ._numerics import (
     safe_norm,
     sinc_half,
     sum_squares,
+    unit_vector,
 )
 
 _LN2 = 0.6931471805599453
@@ -101,7 +102,7 @@ def normalize(q: ArrayLike) -> Array:
     """q/|q|, the unit quaternion of the same rotation, for any finite q the dtype holds (|q|² is not
     formed from q itself when it would overflow or underflow). NaN for q = 0 (nothing is invented)."""
     q = check_trailing(q, 4, "q")
-    return unit_quaternion(prescale(q)[0])
+    return unit_vector(q)
 
 
 def unit_quaternion(q: Array) -> Array:

@@ -188,13 +188,12 @@ def sum_squares(x: Array, axis: int = -1, keepdims: bool = False) -> Array:
 
 
 def unit_vector(x: Array) -> Array:
-    """x/|x| along the last axis for vectors of any magnitude the dtype holds: x is first divided by its
-    largest |component|, so |x|² can neither overflow nor underflow (a float32 vector of length 1e20
-    or 1e-20 has a direction too). Value and derivative are those of x/|x| (the scale is held
-    constant: x/|x| does not depend on it); NaN for x = 0.
+    """x/|x| along the last axis for vectors of any magnitude the dtype holds: an x whose |x|² would
+    overflow or underflow is first scaled by an exact power of two (`prescale`), so a float32 vector
+    of length 1e20 or 1e-20 has a direction too. Value and derivative are those of x/|x| (the scale
+    is held constant: x/|x| does not depend on it); NaN for x = 0.
     """
-    scale = jax.lax.stop_gradient(jnp.max(jnp.abs(x), axis=-1, keepdims=True))
-    x = x / scale
+    x = prescale(x)[0]
     return x / jnp.sqrt(sum_squares(x, keepdims=True))
 
 

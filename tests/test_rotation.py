@@ -638,3 +638,20 @@ def test_reverse_mode_derivatives_at_a_half_turn_are_the_closed_forms(dtype, off
     # which of q, −q is nearer, which float32's w = −4.4e-8 at π leaves to rounding): slope ±cos(a/4)/4.
     slope = float(jax.grad(lambda a: jq.slerp(jq.identity(dtype=dtype), turn(a), 0.5)[3])(a))
     assert np.isfinite(slope) and abs(abs(slope) - np.cos(float(a) / 4) / 4) <= tol
+
+
+@pytest.mark.parametrize("compile", [False, True], ids=["eager", "jit"])
+def test_axes_near_the_float64_maximum_keep_their_direction(compile):
+    """`unit_vector` divided by the largest component, and XLA's x/m = x·(1/m) flushed 1/m to zero
+    above ~4.5e307: from_axis_angle and from_two_vectors gave NaN there. It now scales by `prescale`."""
+    wrap = jax.jit if compile else (lambda f: f)
+    axis = np.array([1e308, 2e307, 0.0])
+    got = np.asarray(wrap(jq.from_axis_angle)(jnp.asarray(axis), 1.0))
+    expected = Rotation.from_rotvec(axis / np.linalg.norm(axis / 1e308) / 1e308).as_quat(
+        scalar_first=True
+    )
+    np.testing.assert_allclose(got, expected, rtol=0, atol=2e-16)
+    turn = np.asarray(
+        wrap(jq.from_two_vectors)(jnp.asarray([1e308, 0, 0.0]), jnp.asarray([0, 1.0, 0]))
+    )
+    np.testing.assert_allclose(turn, [np.sqrt(0.5), 0, 0, np.sqrt(0.5)], rtol=0, atol=2e-16)
