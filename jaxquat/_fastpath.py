@@ -8,15 +8,17 @@ loop is restructured, as measured in PERFORMANCE.md (issue 8):
   product's 28) and applies r^T to q₀ once (`_constant_final`);
 - the carry is structure-of-arrays (`(*batch,)` arrays) and the loop is unrolled, so XLA fuses
   several steps into one pass over the bodies instead of streaming an `(N, 4)` array every step;
-- sampled ω is read by index inside the loop (no gathered copy, on or off the integration grid), and
-  the final state's derivatives store nothing per step: reverse mode is an adjoint that steps back
-  with the inverse rotations, forward mode a tangent scan (`_sampled_final`);
+- with sampled ω a group of steps is one kernel (`one_kernel`: XLA:CPU otherwise computes each of
+  the four components in a loop of its own, repeating the exponential and the earlier steps for
+  each), which reads each step's samples by index (no gathered copy, on or off the integration
+  grid); the final state's derivatives store nothing per step: reverse mode is an adjoint that steps
+  back with the inverse rotations, forward mode a tangent scan (`_sampled_final`);
 - the final state for a constant ω has a closed-form derivative (`_constant_final`);
-- when every step of the run is small (every component |ωᵢ|Δt ≤ 0.5/√3, so |ω|Δt ≤ 0.5; decided once
-  for the batch by a `lax.cond`) the exponential is a series in θ² (NUMERICS.md §4) instead of
-  float64 sin/cos, which XLA:CPU evaluates slowly; on CPU each step's rotation is materialised before
-  its product (`_sampled_step`);
-- renormalisation every `renormalize_every` steps happens between chunks, not as a per-step select;
+- the sampled run takes the exponential as a series in θ² (NUMERICS.md §4) instead of float64
+  sin/cos, which XLA:CPU evaluates slowly, and checks as it goes that every step is small enough for
+  it (|ω|Δt ≤ 0.5); if one is not, the run is made again with sin/cos;
+- renormalisation every `renormalize_every` steps happens between groups of steps, not as a
+  per-step select;
 - `save="all"`: a constant ω's trajectory is formed blockwise (`_constant_trajectory`); with sampled
   ω the loop writes each step into the time-major output (no concatenation).
 
@@ -34,14 +36,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from jax.extend.core import Primitive
+from jax.interpreters import ad, batching, mlir
 from jaxtyping import Array
 
 from ._numerics import cos_half, sinc_half
 
 # The series is used when θ² = |ω|²Δt² ≤ this for every step of the run (θ ≤ 0.5 rad per step).
 SERIES_MAX_THETA_SQ = 0.25
-# Steps fused into one pass over the bodies.
+# Steps fused into one pass over the bodies (one kernel).
 UNROLL = 8
+# The adjoint's kernels also write three numbers a step: beyond about a dozen outputs LLVM no longer
+# vectorises the kernel (measured: 8 steps, 28 outputs, 2.5 s per W5 adjoint instead of 0.55 s).
+ADJOINT_UNROLL = 3
 
 
 def _series_coefficients(dtype, kind: str) -> tuple[float, ...]:
@@ -82,6 +89,103 @@ def _exp_soa(phi, series: bool):
         real = cos_half(theta_sq)
         imag = sinc_half(theta_sq)
     return real, imag * x, imag * y, imag * z
+
+
+def _one_kernel_cpu(*arrays):
+    # −0 is the exact additive identity (x + (−0) = x, also for x = −0), so the sum over the padded
+    # axis returns every array bit for bit, whatever order XLA adds in.
+    zeros = tuple(jnp.array(-0.0, a.dtype) for a in arrays)
+    padded = tuple(
+        lax.pad(a[..., None], zero, [(0, 0, 0)] * a.ndim + [(0, 1, 0)])
+        for a, zero in zip(arrays, zeros, strict=True)
+    )
+    return lax.reduce(
+        padded,
+        zeros,
+        lambda left, right: tuple(x + y for x, y in zip(left, right, strict=True)),
+        (arrays[0].ndim,),
+    )
+
+
+# The identity, as a primitive of its own: linear (its tangent and its transpose are itself, so
+# derivatives and transposed maps are fused the same way) and lowered on CPU to one reduction.
+_one_kernel_p = Primitive("jaxquat_one_kernel")
+_one_kernel_p.multiple_results = True
+_one_kernel_p.def_impl(lambda *arrays: list(arrays))
+_one_kernel_p.def_abstract_eval(lambda *avals: list(avals))
+mlir.register_lowering(
+    _one_kernel_p, mlir.lower_fun(lambda *arrays: list(arrays), multiple_results=True)
+)
+mlir.register_lowering(
+    _one_kernel_p,
+    mlir.lower_fun(lambda *arrays: list(_one_kernel_cpu(*arrays)), multiple_results=True),
+    platform="cpu",
+)
+
+
+def _one_kernel_jvp(primals, tangents):
+    tangents = [ad.instantiate_zeros(t) for t in tangents]
+    return _one_kernel_p.bind(*primals), _one_kernel_p.bind(*tangents)
+
+
+def _one_kernel_transpose(cotangents, *arrays):
+    cotangents = [
+        jnp.zeros(a.aval.shape, a.aval.dtype) if type(c) is ad.Zero else c
+        for c, a in zip(cotangents, arrays, strict=True)
+    ]
+    return _one_kernel_p.bind(*cotangents)
+
+
+def _one_kernel_batch(arrays, axes):
+    size = next(a.shape[d] for a, d in zip(arrays, axes, strict=True) if d is not None)
+    arrays = [
+        jnp.broadcast_to(a, (size,) + a.shape) if d is None else jnp.moveaxis(a, d, 0)
+        for a, d in zip(arrays, axes, strict=True)
+    ]
+    return _one_kernel_p.bind(*arrays), [0] * len(arrays)
+
+
+ad.primitive_jvps[_one_kernel_p] = _one_kernel_jvp
+ad.primitive_transposes[_one_kernel_p] = _one_kernel_transpose
+batching.primitive_batchers[_one_kernel_p] = _one_kernel_batch
+
+
+def one_kernel(*arrays):
+    """The arrays unchanged (same shape, floating dtypes), computed together by one loop on XLA:CPU.
+
+    XLA:CPU emits every output of an elementwise computation as a loop of its own (it has no
+    multi-output fusion of siblings), and each loop recomputes everything its output depends on. The
+    four components of a quaternion that several unrolled steps produce share all of that work, so it
+    ran four times over; a step's exponential, four times. One variadic reduction is one loop with
+    all its outputs, and a sum over a trailing axis padded to two entries with −0 is an identity that
+    XLA keeps as a reduction: everything the arrays depend on is then computed once per element, in
+    registers. Measured on W3 (issue 8; N = 10⁵, T = 1,000, float64, 8 steps per group): 0.33 s
+    against 1.08 s per call with four outputs, 1.6 s with each step's rotation materialised.
+
+    Other backends fuse sibling outputs themselves: there this is the identity. It is linear, and its
+    tangent and transpose are `one_kernel` again (derivative code is fused alike); vmap moves the
+    batch axes to the front.
+    """
+    return tuple(_one_kernel_p.bind(*arrays))
+
+
+def _stepwise(step, separate: bool = False):
+    """A group `advance(carry, ks)` for `_over_steps` from a single step `carry = step(carry, k)`; the
+    carry is a tuple of same-shaped arrays, or of such tuples. The group ends in one kernel, or with
+    `separate`, in one kernel per element of the carry: a linear map (a tangent scan, which JAX
+    transposes) must not pass its constants and its linear values through one `one_kernel`, or
+    JAX's partial evaluation takes the constants for linear values too."""
+
+    def fuse(tree):
+        leaves, structure = jax.tree_util.tree_flatten(tree)
+        return jax.tree_util.tree_unflatten(structure, one_kernel(*leaves))
+
+    def advance(carry, ks):
+        for k in ks:
+            carry = step(carry, k)
+        return tuple(fuse(c) for c in carry) if separate else fuse(carry)
+
+    return advance
 
 
 def _multiply_soa(p, q):
@@ -324,50 +428,75 @@ def _constant_trajectory(q0, rotation, num_steps, frame, renormalize_every):
 
 
 def _sampled_step(h, series: bool, frame: str):
-    """One Lie–Euler step with the per-step sample x: exp(x h) acting on an `(..., 4)` carry."""
+    """One Lie–Euler step with the per-step sample x (its three components): exp(x h) acting on a
+    structure-of-arrays carry."""
 
     def step(carry, x):
-        rotation = _stack(_exp_soa(_split(x * h, 3), series))
-        # On CPU the step rotation is materialised (an (N, 4) array per step, cache-resident) before
-        # the product: fused into it, XLA's concatenating fusion recomputes the exponential for each
-        # of the four output components. W3 (N = 10⁵, T = 1,000, float64, AVX2): 0.85 s instead of
-        # 1.6 s per call. Other backends fuse freely.
-        rotation = lax.platform_dependent(
-            rotation, cpu=lax.optimization_barrier, default=lambda r: r
-        )
-        return _stack(_act_soa(_split(carry, 4), _split(rotation, 4), frame))
+        return _act_soa(carry, _exp_soa(tuple(h * c for c in x), series), frame)
 
     return step
 
 
-def _over_steps(body, carry, num_steps: int, renormalize_every, at_renormalization, reverse=False):
-    """`carry = body(carry, k)` for the steps k = 0 … T − 1 (in reverse order if `reverse`), with
-    `carry = at_renormalization(carry, j)` after step (j + 1)·every, j = 0 … ⌊T/every⌋ − 1 (before it,
-    going backwards): flat scans over the step numbers, with an outer scan over the blocks."""
-    every = renormalize_every
+def _over_steps(
+    advance,
+    carry,
+    num_steps: int,
+    renormalize_every,
+    at_renormalization,
+    reverse=False,
+    unroll: int | None = None,
+    pairs: bool = False,
+):
+    """`carry = advance(carry, ks)` over the steps k = 0 … T − 1, where `ks` is a list of consecutive
+    step numbers (traced ints; descending, and the whole run in reverse order, if `reverse`), with
+    `carry = at_renormalization(carry)` after every `renormalize_every`-th step (before it, going
+    backwards).
 
-    def steps(c, start, length):
-        # A fori_loop: k derives from the loop counter (a scan over an array of step numbers, which
-        # XLA reads from memory, measured ~5-10% slower).
-        last = start + length - 1
-        return lax.fori_loop(0, length, lambda i, c: body(c, last - i if reverse else start + i), c)
+    `advance` runs its group of steps as one piece of straight-line code, which it ends with
+    `one_kernel`: XLA then makes the whole group one loop over the bodies, the carry staying in
+    registers between its steps. The groups are `unroll` steps long (default `UNROLL`), shortened to
+    a divisor of `renormalize_every` so that renormalisations fall between groups, and one loop runs
+    them all (a `lax.cond` after each group renormalises when due): the group's code is compiled once.
+    The last T mod `unroll` steps are taken one at a time.
 
-    blocks = _renormalized_blocks(num_steps, every)
-    if blocks == 0:
-        return steps(carry, 0, num_steps)
-    tail = num_steps - blocks * every
-    if reverse and tail:
-        carry = steps(carry, blocks * every, tail)
+    With `pairs`, each iteration of the loop runs two groups: the carry then alternates between two
+    sets of buffers instead of being copied back after every group (XLA cannot write a kernel's
+    outputs over its inputs), for twice the group's code to compile.
+    """
+    every = (
+        renormalize_every
+        if renormalize_every is not None and renormalize_every <= num_steps
+        else None
+    )
+    size = max(1, min(UNROLL if unroll is None else unroll, num_steps))
+    if every is not None:
+        size = max(d for d in range(1, size + 1) if every % d == 0)
+    groups, rest = divmod(num_steps, size)
+    twice = 2 if pairs and groups >= 2 else 1
 
-    def block(c, j):
+    def group(g, c, size=size):
+        first = g * size
         if reverse:
-            return steps(at_renormalization(c, j), j * every, every), None
-        return at_renormalization(steps(c, j * every, every), j), None
+            if every is not None:  # renormalised after step first + size, so before it going back
+                due = (first + size) % every == 0
+                c = lax.cond(due, at_renormalization, lambda c: c, c)
+            return advance(c, [first + size - 1 - j for j in range(size)])
+        c = advance(c, [first + j for j in range(size)])
+        if every is not None:
+            c = lax.cond((first + size) % every == 0, at_renormalization, lambda c: c, c)
+        return c
 
-    carry = lax.scan(block, carry, jnp.arange(blocks), reverse=reverse)[0]
-    if not reverse and tail:
-        carry = steps(carry, blocks * every, tail)
-    return carry
+    def remaining(c):
+        start = groups * size
+        if reverse:
+            return lax.fori_loop(0, rest, lambda i, c: advance(c, [num_steps - 1 - i]), c)
+        return lax.fori_loop(0, rest, lambda i, c: advance(c, [start + i]), c)
+
+    if reverse:
+        carry = remaining(carry) if rest else carry
+        return lax.fori_loop(0, groups, lambda i, c: group(groups - 1 - i, c), carry, unroll=twice)
+    carry = lax.fori_loop(0, groups, group, carry, unroll=twice)
+    return remaining(carry) if rest else carry
 
 
 def _renormalized_blocks(num_steps: int, renormalize_every: int | None) -> int:
@@ -377,13 +506,26 @@ def _renormalized_blocks(num_steps: int, renormalize_every: int | None) -> int:
 
 
 def _read(samples, indices):
-    """The sample of step k: samples[k], or samples[indices[k]] (a dynamic slice each, no gathered
-    copy; on the grid `indices` is None, which saves the second lookup per step)."""
+    """The sample of step k as its three components: samples[k], or samples[indices[k]] (no gathered
+    copy; on the grid `indices` is None, which saves the second lookup per step).
+
+    Each component is a dynamic slice of its own: XLA:CPU estimates the code a fused producer costs
+    by the shape-changing users it reaches, and one slice of the whole row, reached by three
+    component slices and every output of a kernel, was refused fusion and copied (W5's adjoint: two
+    of three rows, 0.15 s)."""
+    batch = samples.shape[1:-1]
 
     def read(k):
         if indices is not None:
             k = lax.dynamic_index_in_dim(indices, k, keepdims=False)
-        return lax.dynamic_index_in_dim(samples, k, keepdims=False)
+        k = jnp.asarray(k)
+        zeros = (jnp.zeros((), k.dtype),) * len(batch)
+        return tuple(
+            lax.dynamic_slice(
+                samples, (k, *zeros, jnp.asarray(c, k.dtype)), (1, *batch, 1)
+            ).reshape(batch)
+            for c in range(3)
+        )
 
     return read
 
@@ -415,6 +557,12 @@ def _dot_soa(a, b):
     return sum(u * v for u, v in zip(a, b, strict=True))
 
 
+def _cross_soa(a, b):
+    ax, ay, az = a
+    bx, by, bz = b
+    return ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+
+
 def _sampled_tangent(
     q0, samples, h, indices, dq0, dsamples, dh, series, frame, num_steps, renormalize_every
 ):
@@ -425,10 +573,10 @@ def _sampled_tangent(
     read, read_tangent = _read(samples, indices), _read(dsamples, indices)
 
     def step(carry, k):
-        q, dq = (_split(c, 4) for c in carry)
-        xv = _split(read(k), 3)
+        q, dq = carry
+        xv = read(k)
         phi = tuple(h * c for c in xv)
-        dphi = tuple(h * c for c in _split(read_tangent(k), 3))
+        dphi = tuple(h * c for c in read_tangent(k))
         if dh is not None:
             dphi = tuple(a + dh * c for a, c in zip(dphi, xv, strict=True))
         r, sinc, slope = _exp_and_slope(phi, series)
@@ -442,23 +590,41 @@ def _sampled_tangent(
         dq = tuple(
             a + b for a, b in zip(_multiply_soa(*first), _multiply_soa(*second), strict=True)
         )
-        return _stack(_act_soa(q, r, frame)), _stack(dq)
+        return _act_soa(q, r, frame), dq
 
-    def normalize(carry, _):
-        q, dq = (_split(c, 4) for c in carry)
+    def normalize(carry):
+        q, dq = carry
         size = jnp.sqrt(_dot_soa(q, q))
         unit = tuple(a / size for a in q)
         radial = _dot_soa(unit, dq)
-        return _stack(unit), _stack(
-            tuple((d - radial * u) / size for d, u in zip(dq, unit, strict=True))
-        )
+        return unit, tuple((d - radial * u) / size for d, u in zip(dq, unit, strict=True))
 
-    carry = tuple(jnp.broadcast_arrays(q0, dq0))
-    return _over_steps(step, carry, num_steps, renormalize_every, normalize)[1]
+    carry = tuple(_split(c, 4) for c in jnp.broadcast_arrays(q0, dq0))
+    final = _over_steps(
+        _stepwise(step, separate=True),
+        carry,
+        num_steps,
+        renormalize_every,
+        normalize,
+        # One step per kernel: unrolled, its second derivatives (forward over reverse) took ~4x as
+        # long to compile, and forward mode is not the fast path.
+        unroll=1,
+    )
+    return _stack(final[1])
 
 
 def _sampled_adjoint(
-    q0, q_final, samples, h, indices, cotangent, series, frame, num_steps, renormalize_every
+    q0,
+    q_final,
+    samples,
+    h,
+    indices,
+    cotangent,
+    series,
+    frame,
+    num_steps,
+    renormalize_every,
+    with_weight=True,
 ):
     """The cotangents of (samples, h, q₀) for the cotangent of q_T, by one reverse scan that carries a
     single quaternion per body: nothing is stored on the way forward, and the states are not rebuilt.
@@ -476,50 +642,76 @@ def _sampled_adjoint(
     part ⟨λ, q⟩, so it sets p_w = 0. At the start, λ₀ = p₀ ⊗ q₀/|q₀|² (body: q₀ ⊗ p₀/|q₀|²).
 
     Per body and step this reads the sample, carries 4 numbers and writes 3 (the earlier form carried
-    q and λ, rebuilt by inverse steps: 8 numbers, and ~1.6x the time at N = 10⁵). Each step adds its
-    cotangent into the carried output at its sample's index, in place.
-
-    `lax.optimization_barrier` materialises the step rotation's coefficients, μ and the step's row of
-    the output: fused into their consumers, XLA:CPU recomputed the exponential (and μ) once per
-    output component, and ran the row's arithmetic inside the single-threaded in-place update.
+    q and λ, rebuilt by inverse steps: 8 numbers, and ~1.6x the time at N = 10⁵). A group of steps
+    is one kernel (`one_kernel`) that outputs p and the group's rows of the cotangent, which are then
+    written into the carried output in place: as one block on the integration grid, one row at a
+    time (added to the row of its held sample) off it.
     """
-    world = frame == "world"
+    sign = 1.0 if frame == "world" else -1.0
     read = _read(samples, indices)
 
-    def step(carry, k):
-        p, weight, total = carry
-        xv = _split(read(k), 3)
-        phi = tuple(h * c for c in xv)
-        r, sinc, slope = _exp_and_slope(phi, series)
-        coefficients = _split(lax.optimization_barrier(_stack(r + (sinc, slope))), 6)
-        r, sinc, slope = coefficients[:4], coefficients[4], coefficients[5]
-        mu = _multiply_soa(p, r) if world else _multiply_soa(r, p)
-        mu = _split(lax.optimization_barrier(_stack(mu)), 4)
-        back = _conjugate_soa(r)
-        p = _stack(_multiply_soa(back, mu) if world else _multiply_soa(mu, back))
-        mu_w, mu_v = mu[0], mu[1:]
-        along = -0.5 * sinc * mu_w + slope * _dot_soa(phi, mu_v)
-        g = tuple(sinc * m + along * c for m, c in zip(mu_v, phi, strict=True))
-        scaled = lax.optimization_barrier(_stack(tuple(h * c for c in g)))
-        if indices is None:  # sample k is step k's alone
-            total = lax.dynamic_update_index_in_dim(total, scaled, k, 0)
+    # Going back, p_w = ⟨λ, q⟩ is kept by every step and zeroed by every renormalisation, so it is
+    # p_w at the end until the last renormalisation (after step `renormalized` − 1) and 0 before it.
+    renormalized = _renormalized_blocks(num_steps, renormalize_every) * (renormalize_every or 0)
+
+    def advance(carry, ks):
+        v, weight, total = carry
+        rows = []
+        for k in ks:
+            p_w = p_end[0] if renormalized == 0 else jnp.where(k < renormalized, 0.0, p_end[0])
+            xv = read(k)
+            phi = tuple(h * c for c in xv)
+            (c, _, _, _), s, slope = _exp_and_slope(phi, series)
+            theta_sq = _dot_soa(phi, phi)
+            d = _dot_soa(v, phi)
+            cross = _cross_soa(v, phi)  # v × φ
+            s_sq, cs = s * s, c * s
+            mu_w = p_w * c - s * d
+            along = -0.5 * s * mu_w + slope * (
+                p_w * s * theta_sq + c * d
+            )  # ⟨φ, μ_v⟩ = p_w s θ² + c d
+            # g = S μ_v + along φ with μ_v = p_w S φ + c v ± S (v × φ)
+            a, e = s_sq * p_w + along, sign * s_sq
+            g = tuple(a * f + cs * u + e * x for f, u, x in zip(phi, v, cross, strict=True))
+            if weight is not None:
+                weight = weight + _dot_soa(xv, g)
+            rows.append(tuple(h * c for c in g))
+            # p ← r̄ ⊗ p ⊗ r (world; r ⊗ p ⊗ r̄ in the body frame): p_w is kept and v is turned,
+            # (c² − S²θ²) v + 2 S² ⟨v, φ⟩ φ ± 2 c S (v × φ), which is also the two products' |r|².
+            turn, along_phi, across = c * c - s_sq * theta_sq, 2.0 * s_sq * d, 2.0 * sign * cs
+            v = [
+                turn * u + along_phi * f + across * x for u, f, x in zip(v, phi, cross, strict=True)
+            ]
+        extra = () if weight is None else (weight,)
+        outputs = one_kernel(*v, *extra, *(c for row in rows for c in row))
+        v, extra, flat = outputs[:3], outputs[3 : 3 + len(extra)], outputs[3 + len(extra) :]
+        rows = [_stack(flat[3 * i : 3 * i + 3]) for i in range(len(ks))]
+        if indices is None:  # sample k is step k's alone; the group's steps descend from ks[0]
+            block = jnp.stack(rows[::-1])
+            total = lax.dynamic_update_slice_in_dim(total, block.astype(total.dtype), ks[-1], 0)
         else:  # a held sample serves several steps
-            index = lax.dynamic_index_in_dim(indices, k, keepdims=False)
-            here = lax.dynamic_index_in_dim(total, index, keepdims=False)
-            total = lax.dynamic_update_index_in_dim(total, here + scaled, index, 0)
-        return _split(p, 4), weight + _dot_soa(xv, g), total
+            for k, row in zip(ks, rows, strict=True):
+                index = lax.dynamic_index_in_dim(indices, k, keepdims=False)
+                here = lax.dynamic_index_in_dim(total, index, keepdims=False)
+                total = lax.dynamic_update_index_in_dim(total, here + row, index, 0)
+        return tuple(v), (extra[0] if extra else None), total
 
-    def renormalized(carry, _):
-        p, weight, total = carry
-        return (jnp.zeros_like(p[0]),) + p[1:], weight, total
-
+    world = frame == "world"
     q_final, cotangent, start = (_split(a, 4) for a in jnp.broadcast_arrays(q_final, cotangent, q0))
     back = _conjugate_soa(q_final)
-    p = _multiply_soa(cotangent, back) if world else _multiply_soa(back, cotangent)
-    carry = (p, jnp.zeros_like(p[0]), jnp.zeros_like(samples))
-    p, weight, total = _over_steps(
-        step, carry, num_steps, renormalize_every, renormalized, reverse=True
+    p_end = _multiply_soa(cotangent, back) if world else _multiply_soa(back, cotangent)
+    carry = (p_end[1:], jnp.zeros_like(p_end[0]) if with_weight else None, jnp.zeros_like(samples))
+    v, weight, total = _over_steps(
+        advance,
+        carry,
+        num_steps,
+        None,
+        None,
+        reverse=True,
+        unroll=min(ADJOINT_UNROLL, _group_size(series, indices)),
+        pairs=indices is None,
     )
+    p = (jnp.zeros_like(v[0]) if renormalized else p_end[0], *v)
     # λ₀ = p₀ ⊗ q₀/|q₀|² with q₀ divided by its largest component first (|q₀|² of a float32 q₀
     # overflows above ~1e19 and underflows below ~1e-19).
     scale = functools.reduce(jnp.maximum, tuple(jnp.abs(c) for c in start))
@@ -536,7 +728,8 @@ def _sampled_adjoint(
         def through_the_rotation():
             one = jnp.ones_like(start[0])
             zero = jnp.zeros_like(start[0])
-            rotation = _sampled_final(
+            # (A rare path: one step per kernel, to keep compilation short.)
+            rotation, _ = _sampled_run(
                 _stack((one, zero, zero, zero)),
                 samples,
                 h,
@@ -545,6 +738,7 @@ def _sampled_adjoint(
                 frame,
                 num_steps,
                 renormalize_every,
+                unroll=1,
             )
             back = _conjugate_soa(_split(rotation, 4))
             return _stack(
@@ -553,12 +747,14 @@ def _sampled_adjoint(
 
         fallback = lax.cond(jnp.any(dead), through_the_rotation, lambda: jnp.zeros_like(lam))
         lam = jnp.where(dead[..., None], fallback, lam)
-    return total, jnp.sum(weight), lam
+    return total, (jnp.sum(weight) if with_weight else None), lam
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(4, 5, 6, 7))
-def _sampled_final(q0, samples, h, indices, series, frame, num_steps, renormalize_every):
-    """The final state of the sampled Lie–Euler run, step k using samples[indices[k]]: one flat scan.
+@functools.partial(jax.custom_jvp, nondiff_argnums=(5, 6, 7, 8))
+def _sampled_final(q_given, q0, samples, h, indices, series, frame, num_steps, renormalize_every):
+    """The final state of the sampled Lie–Euler run, step k using samples[indices[k]], with the
+    exponential's series in θ² (`series`) or sin/cos; `q_given` is that state when it has been
+    computed already (the value is returned as it is, without derivative of its own), else None.
 
     Derivatives are exact (to round-off) and store nothing per step, in both modes:
 
@@ -573,28 +769,65 @@ def _sampled_final(q0, samples, h, indices, series, frame, num_steps, renormaliz
     transpose I + Mᵀ is the adjoint scan. Being a true inverse pair, the primitive's own rules also give
     correct second derivatives (forward or reverse over reverse).
     """
+    if q_given is not None:
+        return q_given
+    return _sampled_run(q0, samples, h, indices, series, frame, num_steps, renormalize_every)[0]
+
+
+def _group_size(series: bool, indices) -> int:
+    """Steps per kernel: `UNROLL` on the common path, the series on the integration grid, and 1 on
+    the others (each unrolled variant of a run or its adjoint adds about a second of compilation)."""
+    return UNROLL if series and indices is None else 1
+
+
+def _sampled_run(q0, samples, h, indices, series, frame, num_steps, renormalize_every, unroll=None):
+    """The run of `_sampled_final` and, with the series (`series`), the largest θ² of its steps (else
+    0); `unroll` steps per kernel, by default `_group_size`. Never differentiated itself."""
     step = _sampled_step(h, series, frame)
     read = _read(samples, indices)
-    return _over_steps(
-        lambda c, k: step(c, read(k)),
-        q0,
+    q = _split(q0, 4)
+    unroll = _group_size(series, indices) if unroll is None else unroll
+    if not series:
+        final = _over_steps(
+            _stepwise(lambda c, k: step(c, read(k))),
+            q,
+            num_steps,
+            renormalize_every,
+            _normalize,
+            unroll=unroll,
+        )
+        return _stack(final), jnp.zeros((), q0.dtype)
+
+    def tracked(carry, k):
+        q, largest = carry
+        sample = read(k)
+        x, y, z = (h * c for c in sample)
+        return step(q, sample), jnp.maximum(largest, x * x + y * y + z * z)
+
+    final, largest = _over_steps(
+        _stepwise(tracked),
+        (q, jnp.zeros_like(q[0])),
         num_steps,
         renormalize_every,
-        lambda c, _: _normalize(c),
+        lambda c: (_normalize(c[0]), c[1]),
+        unroll=unroll,
     )
+    return _stack(final), jnp.max(largest, initial=0.0)
 
 
 def _sampled_final_jvp(series, frame, num_steps, renormalize_every, primals, tangents):
     from jax.custom_derivatives import SymbolicZero
 
-    q0, samples, h, indices = primals
-    q_final = _sampled_final(q0, samples, h, indices, series, frame, num_steps, renormalize_every)
+    q_given, q0, samples, h, indices = primals
+    # The primal by this function itself (free when the state is given): derivatives of higher order
+    # then go through this rule again, never through the run's unrolled loop.
+    q_final = _sampled_final(*primals, series, frame, num_steps, renormalize_every)
     names = tuple(
         name
-        for name, t in zip(("q0", "samples", "h"), tangents[:3], strict=True)
+        for name, t in zip(("q0", "samples", "h"), tangents[1:4], strict=True)
         if not isinstance(t, SymbolicZero)
     )
-    values = tuple(t for t in tangents[:3] if not isinstance(t, SymbolicZero))
+    values = tuple(t for t in tangents[1:4] if not isinstance(t, SymbolicZero))
     # custom_linear_solve transposes only right-hand sides that are linear in the tangents, so the
     # output slot's zero is made from a live tangent: the sum of none of its entries, whose transpose
     # pads an empty array, which XLA drops (one entry's transpose was a pass over the whole cotangent,
@@ -602,6 +835,10 @@ def _sampled_final_jvp(series, frame, num_steps, renormalize_every, primals, tan
     seed = jnp.sum(values[0].reshape(-1)[:0])
     zero = jnp.zeros(q_final.shape, q_final.dtype) * seed.astype(q_final.dtype)
 
+    # Checkpointed: its primal-only part (the states, the step rotations) would otherwise be split off
+    # by JAX's partial evaluation and run in the forward pass of every reverse-mode derivative, where
+    # nothing uses it (the transpose is the adjoint): one more run, with per-step residuals.
+    @jax.checkpoint
     def tangent_map(inputs):
         given = dict(zip(names, inputs, strict=True))
         return _sampled_tangent(
@@ -639,7 +876,17 @@ def _sampled_final_jvp(series, frame, num_steps, renormalize_every, primals, tan
     def transpose_solve(_, b):  # (I + M)ᵀ = I + Mᵀ
         *inputs, out = b
         total, weight, lam = _sampled_adjoint(
-            q0, q_final, samples, h, indices, out, series, frame, num_steps, renormalize_every
+            q0,
+            q_final,
+            samples,
+            h,
+            indices,
+            out,
+            series,
+            frame,
+            num_steps,
+            renormalize_every,
+            with_weight="h" in names,
         )
         cotangents = {"q0": lam, "samples": total, "h": weight}
         return tuple(
@@ -873,34 +1120,76 @@ def _integrate_fast(
     samples = jnp.broadcast_to(samples, (length,) + batch + (3,))
     aligned = jnp.all(indices == jnp.arange(num_steps, dtype=indices.dtype))
 
-    def sampled_run(series, indices, samples):
-        # Sampled ω: an (N, 4) carry and one step per iteration measured fastest (each step reads
-        # its own samples, so there is no arithmetic to fuse across steps).
-        if save == "final":
-            return _sampled_final(
-                q0, samples, h, indices, series, frame, num_steps, renormalize_every
-            )
-        step = _sampled_step(h, series, frame)
-        if indices is None:
-            # Saving every step: scanned over as xs (reverse mode then stacks the cotangents; a
-            # lookup into the closed-over samples accumulated them in a carried buffer, slower).
-            return run(step, q0, samples[:num_steps], 1)
-        read = _read(samples, indices)
-        return run(lambda c, k: step(c, read(k)), q0, jnp.arange(num_steps), 1)
+    def final_state(indices, samples):
+        # The run takes the exponential's series in θ² (no sin/cos, which XLA:CPU evaluates slowly)
+        # and reports the largest θ² of its steps, a check that rides along in its kernels (a pass of
+        # its own over W3's 2.4 GB of samples took 0.17 s, as long as the run). Only if a step was
+        # too large for the series, the run is made again with sin/cos (NaN samples take that branch
+        # too, and stay NaN). Derivatives come from `_sampled_final`'s rule for the branch taken
+        # (so only one adjoint runs); the unrolled run itself is never differentiated.
+        constants = lax.stop_gradient((q0, samples, h))
+        q, largest = _sampled_run(*constants, indices, True, frame, num_steps, renormalize_every)
 
-    def on_grid(samples):
-        # The series needs every step small; on the grid the steps use the first num_steps samples.
-        used = samples[:num_steps]
-        # θ² = |ω|²Δt² ≤ 3 max|ωᵢ|² Δt²: bounding by the largest component needs only the max and min
-        # of the raw samples, one vectorised pass (W3's 2.4 GB: 0.17 s, against 0.44 s for max |ω|²).
+        def final(series):
+            def run(q_given, q0, samples, h):
+                return _sampled_final(
+                    q_given if series else None,
+                    q0,
+                    samples,
+                    h,
+                    indices,
+                    series,
+                    frame,
+                    num_steps,
+                    renormalize_every,
+                )
+
+            return run
+
+        # (The arrays are the cond's operands, not closed over: JAX then passes the samples on to
+        # the adjoint as they are, where as a constant they were copied, a second T × N × 3 array.)
+        return lax.cond(
+            largest <= SERIES_MAX_THETA_SQ, final(True), final(False), q, q0, samples, h
+        )
+
+    def trajectory(series, indices, samples):
+        # Saving every step: one step per iteration (each writes its row of the output), the step
+        # computed by one kernel from a structure-of-arrays carry.
+        sampled_step = _sampled_step(h, series, frame)
+
+        def step(carry, x):
+            return one_kernel(*sampled_step(carry, x))
+
+        if indices is None:
+            # Scanned over as xs (reverse mode then stacks the cotangents; a lookup into the
+            # closed-over samples accumulated them in a carried buffer, slower).
+            return run(lambda c, x: step(c, _split(x, 3)), _split(q0, 4), samples[:num_steps], 1)
+        read = _read(samples, indices)
+        return run(lambda c, k: step(c, read(k)), _split(q0, 4), jnp.arange(num_steps), 1)
+
+    def trajectory_on_grid(samples):
+        # The series needs every step small. Here it is decided before the run, which writes the
+        # whole trajectory (a run to discard would double the memory): on the grid the steps use the
+        # first num_steps samples, and θ² = |ω|²Δt² ≤ 3 max|ωᵢ|² Δt² needs only their max and min,
+        # one vectorised pass (W3's 2.4 GB: 0.17 s, against 0.44 s for max |ω|²).
         # (initial=0: an empty batch has no samples and takes the series; NaN still propagates.)
+        used = samples[:num_steps]
         largest = jnp.maximum(jnp.max(used, initial=0.0), -jnp.min(used, initial=0.0))
         small = 3.0 * largest * largest * (h * h) <= SERIES_MAX_THETA_SQ
         return lax.cond(
             small,
-            functools.partial(sampled_run, True, None),
-            functools.partial(sampled_run, False, None),
+            functools.partial(trajectory, True, None),
+            functools.partial(trajectory, False, None),
             samples,
         )
 
-    return lax.cond(aligned, on_grid, functools.partial(sampled_run, False, indices), samples)
+    if save == "final":
+        return lax.cond(
+            aligned,
+            functools.partial(final_state, None),
+            functools.partial(final_state, indices),
+            samples,
+        )
+    return lax.cond(
+        aligned, trajectory_on_grid, functools.partial(trajectory, False, indices), samples
+    )

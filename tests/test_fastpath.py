@@ -1,0 +1,170 @@
+"""The loop structure of `integrate`'s fast paths (`jaxquat._fastpath`).
+
+`one_kernel` is the identity that XLA:CPU lowers to one loop with several outputs; the sampled-ω run
+takes groups of steps per kernel, a series exponential checked as it goes, and renormalisations between
+groups. Everything is checked against mathematics or an independent loop, never against the fast path
+itself: bit identity for `one_kernel`, SciPy's composition of the step rotations for the run, and AD
+through a plain Python loop of exact steps for its derivatives.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import random_unit
+from scipy.spatial.transform import Rotation
+
+import jaxquat as jq
+from jaxquat._fastpath import SERIES_MAX_THETA_SQ, UNROLL, one_kernel
+
+
+def bits(x):
+    x = np.asarray(x)
+    return x.view(np.uint64 if x.dtype == np.float64 else np.uint32)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_one_kernel_returns_its_arguments_bit_for_bit(dtype):
+    """Signed zeros, infinities, NaN, subnormals and the extremes come back unchanged, eagerly and
+    under jit (where XLA:CPU lowers it to a sum over a padded axis, which must not turn −0 into +0)."""
+    info = jnp.finfo(dtype)
+    special = jnp.array(
+        [-0.0, 0.0, np.inf, -np.inf, np.nan, float(info.tiny) / 4, -float(info.max), 1.0], dtype
+    )
+    others = (jnp.arange(8, dtype=dtype) - 3.5) * 1e3, -special
+    for function in (one_kernel, jax.jit(one_kernel)):
+        out = function(special, *others)
+        assert len(out) == 3
+        for got, given in zip(out, (special, *others), strict=True):
+            assert got.dtype == given.dtype and got.shape == given.shape
+            np.testing.assert_array_equal(bits(got), bits(given))
+    scalar = jax.jit(one_kernel)(jnp.array(-0.0, dtype))
+    np.testing.assert_array_equal(bits(scalar[0]), bits(jnp.array(-0.0, dtype)))
+
+
+def test_one_kernel_is_linear_with_identity_derivatives_and_batches():
+    """jvp and vjp pass tangents and cotangents through unchanged (also symbolic zeros, for an output
+    that does not depend on the input), it transposes to itself, and vmap over any axis, with
+    unbatched arguments mixed in, equals the unbatched call."""
+    x = jnp.linspace(-1.0, 2.0, 6)
+    y = jnp.cos(x)
+
+    def f(a, b):
+        u, v = one_kernel(jnp.sin(a) * b, a * a)
+        return u + 2.0 * v
+
+    def reference(a, b):
+        return jnp.sin(a) * b + 2.0 * a * a
+
+    for argnums in (0, 1):
+        np.testing.assert_allclose(
+            jax.jacfwd(f, argnums)(x, y), jax.jacfwd(reference, argnums)(x, y), rtol=1e-15
+        )
+        np.testing.assert_allclose(
+            jax.jacrev(f, argnums)(x, y), jax.jacrev(reference, argnums)(x, y), rtol=1e-15
+        )
+    hessian = jax.hessian(lambda a: jnp.sum(f(a, y)))(x)
+    np.testing.assert_allclose(hessian, jax.hessian(lambda a: jnp.sum(reference(a, y)))(x))
+    # Only the first argument carries a tangent: the second output's is a symbolic zero.
+    _, (dz, dc) = jax.jvp(lambda a: one_kernel(a, jnp.ones(3)), (jnp.ones(3),), (jnp.arange(3.0),))
+    np.testing.assert_array_equal(dz, [0.0, 1.0, 2.0])
+    np.testing.assert_array_equal(dc, jnp.zeros(3))
+    transpose = jax.linear_transpose(lambda a, b: one_kernel(a, b), x, y)
+    back = transpose((2.0 * x, 3.0 * y))
+    np.testing.assert_array_equal(back[0], 2.0 * x)
+    np.testing.assert_array_equal(back[1], 3.0 * y)
+
+    batch = jnp.arange(24.0).reshape(4, 6)
+    mapped = jax.vmap(lambda a, b: one_kernel(a, b), in_axes=(1, None))(batch, x[:4])
+    np.testing.assert_array_equal(mapped[0], batch.T)
+    np.testing.assert_array_equal(mapped[1], jnp.broadcast_to(x[:4], (6, 4)))
+
+
+def python_loop(q0, samples, dt, num_steps, renormalize_every, frame="world"):
+    """The Lie–Euler run written out: q_k = exp(ω_k Δt) ⊗ q_(k−1) (world), renormalised after every
+    `renormalize_every`-th step (an independent loop of `from_rotvec` and `multiply`)."""
+    q = q0
+    for k in range(num_steps):
+        r = jq.from_rotvec(samples[k] * dt)
+        q = jq.multiply(r, q) if frame == "world" else jq.multiply(q, r)
+        if renormalize_every is not None and (k + 1) % renormalize_every == 0:
+            q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+    return q
+
+
+@pytest.mark.parametrize(
+    ("num_steps", "renormalize_every"),
+    [(1, None), (UNROLL, 3), (UNROLL + 1, None), (23, 5), (23, 1), (3 * UNROLL, UNROLL), (20, 12)],
+)
+def test_groups_of_steps_and_renormalisation_boundaries(num_steps, renormalize_every, getkey):
+    """Runs shorter than a group, a group plus one step, renormalisation every step, every 3, 5 and
+    12 steps (not multiples of the group) and at group ends: the final state, its gradient w.r.t.
+    the samples and q₀ (reverse mode: the adjoint, whose groups run backwards) and its jvp (forward
+    mode) equal the Python loop's, for a non-unit q₀."""
+    q0 = random_unit(getkey(), (5,)) * jnp.linspace(0.5, 1.5, 5)[:, None]
+    samples = 3.0 * jax.random.normal(getkey(), (num_steps, 5, 3))
+    dt = 0.03
+    target = random_unit(getkey(), (5,))
+
+    def fast(w, q):
+        final = jq.integrate(
+            q, jq.sampled(w, dt), dt, num_steps, renormalize_every=renormalize_every, save="final"
+        )
+        return jnp.sum(jq.multiply(jq.conjugate(target), final)[..., 1:] ** 2), final
+
+    def loop(w, q):
+        final = python_loop(q, w, dt, num_steps, renormalize_every)
+        return jnp.sum(jq.multiply(jq.conjugate(target), final)[..., 1:] ** 2), final
+
+    (value, final), grads = jax.jit(jax.value_and_grad(fast, (0, 1), has_aux=True))(samples, q0)
+    (value_ref, final_ref), grads_ref = jax.value_and_grad(loop, (0, 1), has_aux=True)(samples, q0)
+    np.testing.assert_allclose(final, final_ref, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(value, value_ref, rtol=1e-13)
+    for g, g_ref in zip(grads, grads_ref, strict=True):
+        np.testing.assert_allclose(g, g_ref, rtol=0, atol=1e-12 * float(jnp.max(jnp.abs(g_ref))))
+    direction = jax.random.normal(getkey(), samples.shape)
+    tangent = jax.jit(lambda w: jax.jvp(lambda v: fast(v, q0)[1], (w,), (direction,))[1])(samples)
+    tangent_ref = jax.jvp(lambda v: loop(v, q0)[1], (samples,), (direction,))[1]
+    np.testing.assert_allclose(tangent, tangent_ref, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("frame", ["world", "body"])
+def test_series_and_its_fallback_either_side_of_the_threshold(frame):
+    """The run takes the series while every step has θ² ≤ `SERIES_MAX_THETA_SQ` and falls back to
+    sin/cos as soon as one step of one body exceeds it: just below and just above the threshold (the
+    largest step in the last body), the result is SciPy's composition of the step rotations, and the
+    gradient equals AD through the Python loop."""
+    num_steps, bodies, dt = 17, 4, 0.1
+    rng = np.random.default_rng(3)
+    directions = rng.normal(size=(num_steps, bodies, 3))
+    directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
+    q0 = jnp.asarray(Rotation.random(bodies, random_state=4).as_quat(scalar_first=True))
+    target = jnp.asarray(Rotation.random(bodies, random_state=5).as_quat(scalar_first=True))
+    for factor in (1.0 - 1e-9, 1.0 + 1e-9):
+        angles = rng.uniform(0.05, 0.3, size=(num_steps, bodies))
+        angles[11, -1] = np.sqrt(SERIES_MAX_THETA_SQ) * factor  # θ of the largest step
+        samples = jnp.asarray(directions * angles[..., None] / dt)
+        final = jax.jit(
+            lambda w: jq.integrate(q0, jq.sampled(w, dt), dt, num_steps, frame=frame, save="final")
+        )(samples)
+        expected = Rotation.from_quat(np.asarray(q0), scalar_first=True)
+        for k in range(num_steps):
+            step = Rotation.from_rotvec(np.asarray(samples[k]) * dt)
+            expected = step * expected if frame == "world" else expected * step
+        np.testing.assert_allclose(
+            final, expected.as_quat(scalar_first=True, canonical=False), rtol=0, atol=1e-14
+        )
+
+        def loss(w, run):
+            return jnp.sum(jq.multiply(jq.conjugate(target), run(w))[..., 1:] ** 2)
+
+        def fast(w):
+            return jq.integrate(q0, jq.sampled(w, dt), dt, num_steps, frame=frame, save="final")
+
+        grad = jax.jit(jax.grad(lambda w: loss(w, fast)))(samples)
+        grad_ref = jax.grad(
+            lambda w: loss(w, lambda v: python_loop(q0, v, dt, num_steps, None, frame))
+        )(samples)
+        np.testing.assert_allclose(grad, grad_ref, rtol=0, atol=1e-13)
