@@ -46,6 +46,9 @@ from ._numerics import cos_half, sinc_half
 SERIES_MAX_THETA_SQ = 0.25
 # Steps fused into one pass over the bodies (one kernel).
 UNROLL = 8
+# Steps of a constant ω's powers (5 flops each) per kernel. W1 (N = 10⁵, T = 1,000, float64): 34 ms
+# with 8, 29 with 16, 16 with 50, 18 with 100.
+POWERS_UNROLL = 50
 # The adjoint's kernels also write three numbers a step: beyond about a dozen outputs LLVM no longer
 # vectorises the kernel (measured: 8 steps, 28 outputs, 2.5 s per W5 adjoint instead of 0.55 s).
 ADJOINT_UNROLL = 3
@@ -219,100 +222,6 @@ def _split(a: Array, size: int):
 
 def _stack(q) -> Array:
     return jnp.stack(q, axis=-1)
-
-
-def _divisors(n: int) -> list[int]:
-    small = [d for d in range(1, math.isqrt(n) + 1) if n % d == 0]
-    return sorted(set(small + [n // d for d in small]))
-
-
-def _chunk_length(num_steps: int, renormalize_every: int | None, has_xs: bool) -> int:
-    """The length of the checkpointed chunks (≈ √T, as in `_integrate.scan_steps`).
-
-    It divides `renormalize_every` (when that is ≤ T) so that renormalisation falls on chunk ends, and
-    preferably T itself when ω is scanned over (the samples are then reshaped, never copied).
-    """
-    target = math.sqrt(num_steps)
-    if renormalize_every is not None and renormalize_every <= num_steps:
-        candidates = _divisors(renormalize_every)
-        if has_xs:
-            both = [d for d in candidates if num_steps % d == 0]
-            if any(target / 8 <= d <= 8 * target for d in both):
-                candidates = both
-    else:
-        candidates = _divisors(num_steps) if has_xs else []
-        if not any(target / 8 <= d <= 8 * target for d in candidates):
-            candidates = [math.isqrt(num_steps - 1) + 1] if num_steps > 1 else [1]
-
-    def badness(d):
-        # Within a factor of 2 of √T a multiple of the unroll factor wins (no remainder steps inside
-        # the unrolled scan); otherwise the closest to √T.
-        far = abs(math.log(d / target))
-        return (far > math.log(2.0), d % UNROLL != 0, far)
-
-    return min(candidates, key=badness)
-
-
-def _run_final(
-    step, carry, xs, num_steps, renormalize_every, checkpoint, unroll, normalize=_normalize
-):
-    """`num_steps` of `carry = step(carry, x)` with `carry = normalize(carry)` after every
-    `renormalize_every`-th step, as nested scans (outer body checkpointed) so that reverse mode stores
-    O(√T) carries."""
-    if num_steps == 0:
-        return carry
-
-    def inner(carry, xs, length):
-        return lax.scan(
-            lambda c, x: (step(c, x), None), carry, xs, length=length, unroll=min(unroll, length)
-        )[0]
-
-    every = renormalize_every
-    if num_steps <= 64:
-        # A short run: one scan; renormalisation (if due at all) between the pieces.
-        start = 0
-        for stop in [s for s in range(every or num_steps + 1, num_steps + 1, every or 1)] + [
-            num_steps
-        ]:
-            if stop > start:
-                piece = (
-                    None
-                    if xs is None
-                    else jax.tree_util.tree_map(lambda a, i=start, j=stop: a[i:j], xs)
-                )
-                carry = inner(carry, piece, stop - start)
-                if every is not None and stop % every == 0:
-                    carry = normalize(carry)
-            start = stop
-        return carry
-
-    length = _chunk_length(num_steps, every, xs is not None)
-    num_chunks, tail = divmod(num_steps, length)
-    main = num_chunks * length
-    if xs is None:
-        chunks = tail_xs = None
-    else:
-        head = xs if tail == 0 else jax.tree_util.tree_map(lambda a: a[:main], xs)
-        chunks = jax.tree_util.tree_map(
-            lambda a: a.reshape((num_chunks, length) + a.shape[1:]), head
-        )
-        tail_xs = None if tail == 0 else jax.tree_util.tree_map(lambda a: a[main:], xs)
-
-    def chunk(carry, index_and_xs):
-        index, chunk_xs = index_and_xs
-        carry = inner(carry, chunk_xs, length)
-        if every is not None:
-            due = ((index + 1) * length) % every == 0
-            carry = lax.cond(due, normalize, lambda c: c, carry)
-        return carry, None
-
-    if checkpoint:
-        chunk = jax.checkpoint(chunk, prevent_cse=False)
-    carry = lax.scan(chunk, carry, (jnp.arange(num_chunks, dtype=jnp.int32), chunks))[0]
-    if tail:
-        # Renormalisation points are multiples of the chunk length, so none falls inside the tail.
-        carry = inner(carry, tail_xs, tail)
-    return carry
 
 
 def _run_all(step, carry, xs, num_steps, renormalize_every, unroll):
@@ -613,6 +522,7 @@ def _sampled_tangent(
     return _stack(final[1])
 
 
+@functools.partial(jax.custom_jvp, nondiff_argnums=(6, 7, 8, 9, 10, 11))
 def _sampled_adjoint(
     q0,
     q_final,
@@ -625,6 +535,40 @@ def _sampled_adjoint(
     num_steps,
     renormalize_every,
     with_weight=True,
+    unroll=None,
+):
+    """`_sampled_adjoint_steps`, whose own derivatives (for second derivatives of the run) are those
+    of the same adjoint taken one step per kernel: they compile in a fraction of the time the
+    unrolled loop's would."""
+    return _sampled_adjoint_steps(
+        q0,
+        q_final,
+        samples,
+        h,
+        indices,
+        cotangent,
+        series,
+        frame,
+        num_steps,
+        renormalize_every,
+        with_weight,
+        unroll,
+    )
+
+
+def _sampled_adjoint_steps(
+    q0,
+    q_final,
+    samples,
+    h,
+    indices,
+    cotangent,
+    series,
+    frame,
+    num_steps,
+    renormalize_every,
+    with_weight=True,
+    unroll=None,
 ):
     """The cotangents of (samples, h, q₀) for the cotangent of q_T, by one reverse scan that carries a
     single quaternion per body: nothing is stored on the way forward, and the states are not rebuilt.
@@ -708,7 +652,7 @@ def _sampled_adjoint(
         None,
         None,
         reverse=True,
-        unroll=min(ADJOINT_UNROLL, _group_size(series, indices)),
+        unroll=min(ADJOINT_UNROLL, _group_size(series, indices)) if unroll is None else unroll,
         pairs=indices is None,
     )
     p = (jnp.zeros_like(v[0]) if renormalized else p_end[0], *v)
@@ -748,6 +692,18 @@ def _sampled_adjoint(
         fallback = lax.cond(jnp.any(dead), through_the_rotation, lambda: jnp.zeros_like(lam))
         lam = jnp.where(dead[..., None], fallback, lam)
     return total, (jnp.sum(weight) if with_weight else None), lam
+
+
+@_sampled_adjoint.defjvp
+def _sampled_adjoint_jvp(
+    series, frame, num_steps, renormalize_every, with_weight, unroll, primals, tangents
+):
+    def one_step_per_kernel(*arrays):
+        return _sampled_adjoint_steps(
+            *arrays, series, frame, num_steps, renormalize_every, with_weight, 1
+        )
+
+    return jax.jvp(one_step_per_kernel, primals, tangents)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(5, 6, 7, 8))
@@ -953,15 +909,13 @@ def _constant_final(q0, omega, h, frame, num_steps, renormalize_every, unroll):
         norm = jnp.sqrt(a * a + b * b * v_sq)
         return a / norm, b / norm
 
-    a, b = _run_final(
-        lambda c, _: _next_power(c, w, v_sq),
+    a, b = _over_steps(
+        _stepwise(lambda c, _: _next_power(c, w, v_sq)),
         (jnp.ones_like(w), jnp.zeros_like(w)),
-        None,
         num_steps,
         renormalize_every,
-        False,
-        unroll,
         normalize,
+        unroll=unroll,
     )
     # Renormalised stepping ends at r^T ⊗ q₀/|q₀| (rotations keep the norm), unrenormalised at r^T ⊗ q₀.
     start = _split(q0, 4)
@@ -1027,13 +981,15 @@ def integrate_fast(
     save_every,
     compensated,
     renormalize_every,
-    checkpoint,
     unroll,
 ):
     """`integrate` for `method="euler"` with a constant ω array or `jaxquat.sampled` data, uncompensated,
     saving the final state or every step; `None` for anything else.
 
     Arguments as validated by `integrate` (q0, dt, t0 arrays; ω an array `(..., 3)` or a callable).
+    Nothing here is differentiated through a loop (the final states have derivative rules of their
+    own, trajectories store every step anyway), so `integrate`'s `checkpoint` does not apply; `unroll`
+    raises the constant-ω steps per kernel above `POWERS_UNROLL`.
     """
     from ._integrate import Sampled
 
@@ -1068,17 +1024,14 @@ def integrate_fast(
         frame=frame,
         save=save,
         renormalize_every=renormalize_every,
-        checkpoint=checkpoint,
-        unroll=max(unroll, UNROLL),
+        unroll=max(unroll, POWERS_UNROLL),
     )
 
 
 @functools.partial(
     eqx.filter_jit,
 )
-def _integrate_fast(
-    q0, omega, dt, t0, *, batch, num_steps, frame, save, renormalize_every, checkpoint, unroll
-):
+def _integrate_fast(q0, omega, dt, t0, *, batch, num_steps, frame, save, renormalize_every, unroll):
     from ._integrate import Sampled
 
     dtype = q0.dtype
@@ -1086,16 +1039,10 @@ def _integrate_fast(
     time_dtype = jnp.promote_types(jnp.result_type(t0, dt), dtype)
     h = dt.astype(time_dtype).astype(dtype)
 
-    def run(step, carry, xs, unroll):
-        if save == "final":
-            final = _run_final(step, carry, xs, num_steps, renormalize_every, checkpoint, unroll)
-            return _stack(final) if isinstance(final, tuple) else final
-        return _run_all(step, carry, xs, num_steps, renormalize_every, unroll)
-
     if not isinstance(omega, Sampled):
-        # Constant ω: one step rotation, computed once (exact cos/sin, series-switched at 0), and a
-        # structure-of-arrays carry; unrolled steps fuse into one pass over the bodies (W1: ~2-3x).
-        # When saving every step the loop is bound by the output and unrolling only costs.
+        # Constant ω: one step rotation, computed once (exact cos/sin, series-switched at 0); the final
+        # state steps its powers, `unroll` of them per kernel. When saving every step the loop is bound
+        # by the output.
         omega = jnp.broadcast_to(omega.astype(dtype), batch + (3,))
         if save == "all":
             rotation = _exp_soa(_split(omega * h, 3), False)
@@ -1163,9 +1110,23 @@ def _integrate_fast(
         if indices is None:
             # Scanned over as xs (reverse mode then stacks the cotangents; a lookup into the
             # closed-over samples accumulated them in a carried buffer, slower).
-            return run(lambda c, x: step(c, _split(x, 3)), _split(q0, 4), samples[:num_steps], 1)
+            return _run_all(
+                lambda c, x: step(c, _split(x, 3)),
+                _split(q0, 4),
+                samples[:num_steps],
+                num_steps,
+                renormalize_every,
+                1,
+            )
         read = _read(samples, indices)
-        return run(lambda c, k: step(c, read(k)), _split(q0, 4), jnp.arange(num_steps), 1)
+        return _run_all(
+            lambda c, k: step(c, read(k)),
+            _split(q0, 4),
+            jnp.arange(num_steps),
+            num_steps,
+            renormalize_every,
+            1,
+        )
 
     def trajectory_on_grid(samples):
         # The series needs every step small. Here it is decided before the run, which writes the

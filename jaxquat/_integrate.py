@@ -833,7 +833,6 @@ def integrate(
         save_every=save_every,
         compensated=bool(compensated),
         renormalize_every=renormalize_every,
-        checkpoint=bool(checkpoint),
         unroll=unroll,
     )
     if fast is not None:
