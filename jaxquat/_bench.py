@@ -1363,6 +1363,11 @@ def run_w5_row(problem: Problem, sampled: bool, preset: Preset, log: Callable[[s
             entry["forward_seconds"] = _autorange(
                 forward.run, preset.repeats, preset.sample_seconds
             )
+            # Warmed up again right before its samples (the check's call came before the forward's
+            # timing): the gradient writes a fresh T × N × 3 array per call, and on a virtual machine
+            # memory left idle for a moment can stall its first touch for seconds (measured at
+            # N = 10⁵: 3.9 s and 2.1 s for a first call, then 1.05 s).
+            _block(gradient.run())
             entry["gradient_seconds"] = _autorange(
                 gradient.run, preset.repeats, preset.sample_seconds, gradient_first
             )
