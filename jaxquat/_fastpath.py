@@ -522,40 +522,6 @@ def _sampled_tangent(
     return _stack(final[1])
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(6, 7, 8, 9, 10, 11))
-def _sampled_adjoint(
-    q0,
-    q_final,
-    samples,
-    h,
-    indices,
-    cotangent,
-    series,
-    frame,
-    num_steps,
-    renormalize_every,
-    with_weight=True,
-    unroll=None,
-):
-    """`_sampled_adjoint_steps`, whose own derivatives (for second derivatives of the run) are those
-    of the same adjoint taken one step per kernel: they compile in a fraction of the time the
-    unrolled loop's would."""
-    return _sampled_adjoint_steps(
-        q0,
-        q_final,
-        samples,
-        h,
-        indices,
-        cotangent,
-        series,
-        frame,
-        num_steps,
-        renormalize_every,
-        with_weight,
-        unroll,
-    )
-
-
 def _sampled_adjoint_steps(
     q0,
     q_final,
@@ -585,11 +551,15 @@ def _sampled_adjoint_steps(
     maps λ to (λ − q⟨q, λ⟩)/|q̃| while q̃ = |q̃| q: λ ⊗ q̄ keeps its vector part and loses its scalar
     part ⟨λ, q⟩, so it sets p_w = 0. At the start, λ₀ = p₀ ⊗ q₀/|q₀|² (body: q₀ ⊗ p₀/|q₀|²).
 
-    Per body and step this reads the sample, carries 4 numbers and writes 3 (the earlier form carried
-    q and λ, rebuilt by inverse steps: 8 numbers, and ~1.6x the time at N = 10⁵). A group of steps
-    is one kernel (`one_kernel`) that outputs p and the group's rows of the cotangent, which are then
-    written into the carried output in place: as one block on the integration grid, one row at a
-    time (added to the row of its held sample) off it.
+    Conjugation keeps p_w, so only v = p_v is carried, turned by r̄ (world; r in the body frame):
+    v ← (c² − S²θ²) v + 2S²⟨v, φ⟩ φ ± 2cS (v × φ) with r = (c, S φ), which is also what the two
+    products give for a not exactly unit r. p_w is p_T's until the last renormalisation and 0 before
+    it. Per body and step this reads the sample, carries 3 numbers and writes 3 (the first form
+    carried q and λ, rebuilt by inverse steps: 8 numbers). A group of `unroll` steps (by default
+    `ADJOINT_UNROLL` on the common path) is one kernel (`one_kernel`) that outputs v and the group's
+    rows of the cotangent, which are then written into the carried output in place: as one block on
+    the integration grid, one row at a time (added to the row of its held sample) off it. The Δt
+    cotangent Σ⟨ω_k, g_k⟩ is accumulated only `with_weight`.
     """
     sign = 1.0 if frame == "world" else -1.0
     read = _read(samples, indices)
@@ -692,6 +662,11 @@ def _sampled_adjoint_steps(
         fallback = lax.cond(jnp.any(dead), through_the_rotation, lambda: jnp.zeros_like(lam))
         lam = jnp.where(dead[..., None], fallback, lam)
     return total, (jnp.sum(weight) if with_weight else None), lam
+
+
+# The adjoint's own derivatives (second derivatives of the run) are those of the same adjoint taken one
+# step per kernel: they compile in a fraction of the time the unrolled loop's would.
+_sampled_adjoint = jax.custom_jvp(_sampled_adjoint_steps, nondiff_argnums=(6, 7, 8, 9, 10, 11))
 
 
 @_sampled_adjoint.defjvp
