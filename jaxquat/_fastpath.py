@@ -358,8 +358,8 @@ def _over_steps(
 ):
     """`carry = advance(carry, ks)` over the steps k = 0 … T − 1, where `ks` is a list of consecutive
     step numbers (traced ints; descending, and the whole run in reverse order, if `reverse`), with
-    `carry = at_renormalization(carry)` after every `renormalize_every`-th step (before it, going
-    backwards).
+    `carry = at_renormalization(carry)` after every `renormalize_every`-th step (forward runs only:
+    the adjoint, the one reverse run, applies renormalisations as a condition on k instead).
 
     `advance` runs its group of steps as one piece of straight-line code, which it ends with
     `one_kernel`: XLA then makes the whole group one loop over the bodies, the carry staying in
@@ -380,15 +380,14 @@ def _over_steps(
     size = max(1, min(UNROLL if unroll is None else unroll, num_steps))
     if every is not None:
         size = max(d for d in range(1, size + 1) if every % d == 0)
+    if reverse and every is not None:
+        raise ValueError("_over_steps: renormalisation is for forward runs only")
     groups, rest = divmod(num_steps, size)
     twice = 2 if pairs and groups >= 2 else 1
 
-    def group(g, c, size=size):
+    def group(g, c):
         first = g * size
         if reverse:
-            if every is not None:  # renormalised after step first + size, so before it going back
-                due = (first + size) % every == 0
-                c = lax.cond(due, at_renormalization, lambda c: c, c)
             return advance(c, [first + size - 1 - j for j in range(size)])
         c = advance(c, [first + j for j in range(size)])
         if every is not None:
