@@ -50,6 +50,8 @@ from ._numerics import (
 from ._rotation import from_rotvec
 
 _MODELS = ("constant", "piecewise_linear", "spline")
+# Turns between neighbouring observations this close to π (rad) may be on either branch (`_unwrap`).
+_NEAR_HALF_TURN = 0.25
 
 
 # --------------------------------------------------------------------------------------------------
@@ -241,9 +243,34 @@ def _interval_rates(
     tau = times - times[0]
     durations = (tau[end] - tau[start]).astype(qs.dtype)
     pairs = jnp.stack([qs[start], qs[end]])  # (2, T - 1, 4): one step per interval
-    rates = angular_velocity(pairs, durations[None], frame=frame)[0]
+    turns = angular_velocity(pairs, 1.0, frame=frame)[0]  # rotation vectors, angles in [0, π]
     midpoints = tau[start] + 0.5 * (tau[end] - tau[start])
-    return rates, midpoints, durations, valid
+    return _unwrap(turns, durations, valid), midpoints, durations, valid
+
+
+def _unwrap(turns: Array, durations: Array, valid: Array) -> Array:
+    """Rates θn̂/Δt from rotation vectors, near half a turn on the branch nearer the last valid rate.
+
+    The shortest rotation between two observations is ambiguous at half a turn: for a body turning by
+    π per interval, noise picked n̂π or −n̂π at random, the starting ω averaged them to ~0, and the
+    fit converged with residuals of 2.9 rad (converged=True). A turn within `_NEAR_HALF_TURN` of π is
+    therefore replaced by its other branch (θ − 2π)n̂ when that rate is nearer the previous one; all
+    other turns (the documented domain |ω|Δt < π, away from its edge) are kept as they are.
+    """
+    angles = jnp.linalg.norm(turns, axis=-1, keepdims=True)
+    safe = jnp.where(angles > 0, angles, 1)
+    rates = turns / durations[:, None]
+    others = rates * (1 - 2 * jnp.pi / safe)
+    ambiguous = valid & (angles[:, 0] > jnp.pi - _NEAR_HALF_TURN)
+
+    def choose(last, inputs):
+        rate, other, ok, near_pi = inputs
+        nearer = jnp.sum((other - last) ** 2) < jnp.sum((rate - last) ** 2)
+        chosen = jnp.where(near_pi & nearer, other, rate)
+        return jnp.where(ok, chosen, last), chosen
+
+    first = rates[jnp.argmax(valid)]
+    return lax.scan(choose, first, (rates, others, valid, ambiguous))[1]
 
 
 def _check_solver(solver):
@@ -619,7 +646,9 @@ def fit_angular_velocity(
     observation. Observations of weight 0 are skipped: the log-differences bridge them, and if the
     first observation has weight 0, $q_0$ starts at the first positively weighted one carried back
     to $t_0$ by the starting ω. This needs each interval to turn the body by less than half a turn
-    (|ω|Δt < π).
+    (|ω|Δt < π); turns within 0.25 rad of π, whose direction noise can flip, are taken on the branch
+    that continues the previous interval's rate, so a body turning by exactly π per interval is
+    still fitted.
     Started at ω = 0 instead, Levenberg–Marquardt converges to a wrong local minimum as soon as the
     data span more than about half a turn.
 
