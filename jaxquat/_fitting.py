@@ -329,13 +329,17 @@ def _solve(residual_fn, y0, args, weights, solver, max_steps: int, polish: int):
     data_dtype = jax.tree_util.tree_leaves(y0)[0].dtype
     solver_dtype = jnp.promote_types(data_dtype, jnp.asarray(1.0).dtype)
     inputs = (residual_fn, _cast(y0, solver_dtype), args, weights, solver, max_steps, polish)
-    # The rewrite's Jacobian in θ is the loss's Hessian: symmetric.
+    # The rewrite's Jacobian in θ is the loss's Hessian: symmetric. It is singular when the data do
+    # not determine the parameters (a batch lane with one positive weight, under vmap where the
+    # ValueError cannot see it); an LU solve then raised inside lineax and aborted the whole batch's
+    # derivative. The least-squares solve (well_posed=False) gives that lane its minimum-norm
+    # derivative instead, and the others theirs.
     params, (num_steps, converged) = optx.internal.implicit_jvp(
         _solve_primal,
         _solve_rewrite,
         inputs,
         frozenset({lx.symmetric_tag}),
-        lx.AutoLinearSolver(well_posed=None),
+        lx.AutoLinearSolver(well_posed=False),
     )
     return _cast(params, data_dtype), num_steps, converged
 
@@ -755,7 +759,9 @@ def _start(times, observed, weights, knots, *, model, frame):
     rates, midpoints, durations, valid = _interval_rates(times, observed, weights, frame)
     if model == "constant":  # the total rotation angle over the time it took
         durations = jnp.where(valid, durations, 0)
-        return jnp.sum(rates * durations[:, None], axis=0) / jnp.sum(durations)
+        # (At least two positive weights make the sum positive; a traced lane with fewer gets 0.)
+        total = jnp.sum(durations)
+        return jnp.sum(rates * durations[:, None], axis=0) / jnp.where(total > 0, total, 1)
     # The curve is linear in its values: its basis functions are the curve through I_K.
     basis = AngularVelocityCurve.through(knots, jnp.eye(knots.shape[0], dtype=rates.dtype), model)
     rows = valid[:, None].astype(rates.dtype)

@@ -273,6 +273,26 @@ def test_traced_weights_leaving_fewer_than_two_observations_do_not_converge(cons
     )(jnp.asarray(lanes))
     assert fits.converged.tolist() == [False, False, True]
     assert float(np.max(np.abs(fits.omega[2] - c["omega"]))) <= 1e-10
+    # Their derivatives: the singular Hessian of the degenerate lanes raised inside lineax (an LU
+    # solve) and aborted the whole batch's; now each lane has its own, and the good one is exact.
+    derivative = jax.vmap(
+        jax.jacrev(
+            lambda w: (
+                jaxquat.fit_angular_velocity(
+                    c["times"], c["exact"], weights=w, omega0=c["omega"] + 0.05
+                ).omega
+            )
+        )
+    )(jnp.asarray(lanes))
+    single = jax.jacrev(
+        lambda w: (
+            jaxquat.fit_angular_velocity(
+                c["times"], c["exact"], weights=w, omega0=c["omega"] + 0.05
+            ).omega
+        )
+    )(jnp.ones(200))
+    assert np.all(np.isfinite(np.asarray(derivative)))
+    np.testing.assert_allclose(derivative[2], single, rtol=1e-10, atol=1e-14)
 
 
 @pytest.fixture(scope="module")
