@@ -304,6 +304,11 @@ def _cast(tree, dtype):
     return jax.tree_util.tree_map(lambda leaf: leaf.astype(dtype), tree)
 
 
+def _solver_dtype(data_dtype):
+    """The dtype the solvers hold the parameters in: the data's promoted with JAX's default float."""
+    return jnp.promote_types(data_dtype, jnp.asarray(1.0).dtype)
+
+
 def _solve(residual_fn, y0, args, weights, solver, max_steps: int, polish: int):
     """Minimise ½ Σₖ wₖ |ρₖ(θ)|² (ρ = `residual_fn(θ, args)`, shape (T, 3)) from `y0`.
 
@@ -327,8 +332,8 @@ def _solve(residual_fn, y0, args, weights, solver, max_steps: int, polish: int):
     residual, so the model itself runs in the data's dtype; the residuals are promoted on the way out.
     """
     data_dtype = jax.tree_util.tree_leaves(y0)[0].dtype
-    solver_dtype = jnp.promote_types(data_dtype, jnp.asarray(1.0).dtype)
-    inputs = (residual_fn, _cast(y0, solver_dtype), args, weights, solver, max_steps, polish)
+    y0 = _cast(y0, _solver_dtype(data_dtype))
+    inputs = (residual_fn, y0, args, weights, solver, max_steps, polish)
     # The rewrite's Jacobian in θ is the loss's Hessian: symmetric. It is singular when the data do
     # not determine the parameters (a batch lane with one positive weight, under vmap where the
     # ValueError cannot see it); an LU solve then raised inside lineax and aborted the whole batch's
@@ -1076,7 +1081,6 @@ def _continue(residual_fn, params0, args, weights, times, solver, max_steps: int
     """
     params0, args, weights, times = lax.stop_gradient((params0, args, weights, times))
     data_dtype = weights.dtype
-    solver_dtype = jnp.promote_types(data_dtype, jnp.asarray(1.0).dtype)
     span = times[-1] - times[0]
 
     def stage(y, fraction):
@@ -1087,7 +1091,7 @@ def _continue(residual_fn, params0, args, weights, times, solver, max_steps: int
         return jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), fitted, y), None
 
     fractions = jnp.asarray([0.25, 0.5], times.dtype)
-    y, _ = lax.scan(stage, _cast(params0, solver_dtype), fractions)
+    y, _ = lax.scan(stage, _cast(params0, _solver_dtype(data_dtype)), fractions)
     return _cast(y, data_dtype)
 
 
