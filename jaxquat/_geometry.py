@@ -23,9 +23,11 @@ from ._numerics import (
     check_shape,
     check_trailing,
     cross,
+    is_tracer,
     safe_norm,
     sum_squares,
     top_eigenvector,
+    unit_vector,
 )
 from ._rotation import from_rotvec, to_rotvec
 
@@ -54,9 +56,10 @@ def angle_between(p: ArrayLike, q: ArrayLike) -> Array:
     p = check_trailing(p, 4, "p")
     q = check_trailing(q, 4, "q")
     p, q = broadcast_batch((p, 1, "p"), (q, 1, "q"))
-    # Unit first: with |p| ≫ |q| the difference below would swamp q in rounding.
-    p = p / jnp.sqrt(sum_squares(p, keepdims=True))
-    q = q / jnp.sqrt(sum_squares(q, keepdims=True))
+    # Unit first: with |p| ≫ |q| the difference below would swamp q in rounding. (Through
+    # `unit_vector`: |p|² of a float32 p of length 1e20 overflows, and gave θ = 0 for any q.)
+    p = unit_vector(p)
+    q = unit_vector(q)
     w = jnp.sum(p * q, axis=-1)  # w(p* q) = ⟨p, q⟩
     # vec(p* q) = p_w q_v − q_w p_v − p_v × q_v, written in the difference d = ±q − p (sign of ⟨p, q⟩):
     # p_w d_v − d_w p_v − p_v × d_v. Exactly 0 when q = ±p (the product form is not, once the
@@ -196,9 +199,10 @@ def mean(
     **Arguments:**
 
     - `q`: quaternions, shape `(..., 4)`; need not be unit (each is normalised first, as SciPy's
-      `Rotation` does, so a quaternion's length does not weight it).
-    - `weights`: optional non-negative weights, broadcastable to `q.shape[:-1]` (not checked under
-      `jit`: negative weights give a meaningless result).
+      `Rotation` does, so a quaternion's length does not weight it; any finite non-zero length the
+      dtype holds).
+    - `weights`: optional non-negative weights, broadcastable to `q.shape[:-1]` (a negative weight
+      is a `ValueError`, except under `jit`, where it cannot be seen and gives a meaningless result).
     - `axis`: the batch axes to average over: `None` (all, SciPy's default), an int or a tuple. They
       must hold at least one quaternion (else `ValueError`).
 
@@ -228,7 +232,7 @@ def mean(
             "at least one quaternion is needed to take a mean: the averaged axes "
             f"{axis} of `q` (shape {tuple(q.shape)}) are empty."
         )
-    q = q / jnp.sqrt(sum_squares(q, keepdims=True))
+    q = unit_vector(q)  # (|q|² of a float32 q of length 1e25 overflows)
     outer = q[..., :, None] * q[..., None, :]
     if weights is not None:
         weights = as_float_array(weights, "weights")
@@ -239,6 +243,12 @@ def mean(
                 f"`weights` must broadcast to the batch shape {tuple(q.shape[:-1])} of `q`; "
                 f"got shape {tuple(weights.shape)}."
             ) from e
+        if not is_tracer(weights) and bool(jnp.any(weights < 0)):
+            raise ValueError(
+                "`weights` must be non-negative (as for SciPy's `Rotation.mean`); got "
+                f"{float(jnp.min(weights))} at index "
+                f"{tuple(int(i) for i in np.unravel_index(int(jnp.argmin(weights)), weights.shape))}."
+            )
         outer = weights.astype(q.dtype)[..., None, None] * outer
     moment = jnp.sum(outer, axis=axis)
     result = top_eigenvector(moment)

@@ -250,6 +250,16 @@ def test_mean_bad_arguments():
         jq.mean(q, axis=2)
     with pytest.raises(ValueError, match=r"`q` must have shape \(\.\.\., 4\)"):
         jq.mean(q[..., :3])
+    # A negative weight, as SciPy's Rotation.mean: it was used, giving a meaningless rotation.
+    weights = np.ones((4, 3))
+    weights[2, 1] = -0.5
+    with pytest.raises(
+        ValueError, match=r"`weights` must be non-negative.*-0\.5 at index \(2, 1\)"
+    ):
+        jq.mean(q, weights)
+    with pytest.raises(ValueError, match="must be non-negative"):
+        Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).mean(weights.reshape(-1))
+    jq.mean(q, np.abs(weights))  # zero and positive weights are fine
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -279,14 +289,18 @@ def test_check_unit_passes_unit_and_rejects_others():
 @pytest.mark.parametrize("dtype, tol", [("float32", 1e-6), ("float64", 1e-14)])
 def test_angle_between_does_not_depend_on_the_inputs_lengths(dtype, tol):
     """Scale-invariance in floating point: scaling one argument by 1e-12 … 1e16 (where ±q − p once
-    swamped the smaller one in rounding) leaves the angle at its float64 value of the unit inputs."""
+    swamped the smaller one in rounding), or one or both to lengths whose square the dtype cannot
+    hold, leaves the angle at its float64 value of the unit inputs."""
     rng = np.random.default_rng(5)
     p = rng.normal(size=(200, 4))
     q = rng.normal(size=(200, 4))
     want = Rotation.from_quat(q[:, [1, 2, 3, 0]]) * Rotation.from_quat(p[:, [1, 2, 3, 0]]).inv()
     want = want.magnitude()
-    for scale in [1e-12, 1e-3, 1.0, 1e3, 1e9, 1e16]:
-        for args in [(scale * p, q), (p, scale * q)]:
+    # Lengths whose square over- or underflows too (|p|² was formed from p itself: θ = 0 for any q
+    # above 1e19 in float32, NaN below 1e-19; in float64 above 1e154 and below 1e-154).
+    extreme = [1e-30, 1e-20, 1e20, 1e30] if dtype == "float32" else [1e-200, 1e-160, 1e160, 1e200]
+    for scale in [1e-12, 1e-3, 1.0, 1e3, 1e9, 1e16, *extreme]:
+        for args in [(scale * p, q), (p, scale * q), (scale * p, scale * q)]:
             got = jq.angle_between(*(jnp.asarray(x, dtype) for x in args))
             assert np.max(np.abs(np.asarray(got, np.float64) - want)) <= tol * 10
 
@@ -316,6 +330,17 @@ def test_mean_of_non_unit_quaternions_matches_scipy():
         want = rotations.mean(weights=w).as_quat()[[3, 0, 1, 2]]
         got = jq.mean(jnp.asarray(q), None if w is None else jnp.asarray(w))
         assert float(jq.angle_between(got, jnp.asarray(want))) < 1e-12
+    # Lengths whose square over- or underflows (float32 1e±25, float64 1e±200): each input was
+    # normalised through |q|², which gave [0, 0, 0, 1] or NaN.
+    unit = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    want = rotations.mean().as_quat()[[3, 0, 1, 2]]
+    for dtype, lengths, tol in [
+        ("float32", (1e25, 1e-25), 1e-5),
+        ("float64", (1e200, 1e-200), 1e-12),
+    ]:
+        for length in lengths:
+            got = jq.mean(jnp.asarray(unit * length, dtype))
+            assert float(jq.angle_between(got, jnp.asarray(want, dtype))) < tol, (dtype, length)
     identity_and_scaled = jnp.stack(
         [jq.identity(), 3.0 * jq.from_rotvec(jnp.array([0.0, 0.0, 1.0]))]
     )
