@@ -48,14 +48,17 @@ class _Parser(argparse.ArgumentParser):
 
 
 class _Once(argparse.Action):
-    """Store an option that may be given only once (argparse's default keeps the last silently)."""
+    """Store an option that may be given only once (argparse's default keeps the last silently:
+    `--bodies 10 … --bodies 12` ran 12 bodies without a word)."""
 
     def __call__(self, parser, namespace, values, option_string=None):
-        previous = getattr(namespace, self.dest, None)
-        if previous is not None:
+        given = namespace.__dict__.setdefault("_given", set())
+        if self.dest in given:
+            previous = getattr(namespace, self.dest)
             raise argparse.ArgumentError(
                 self, f"may be given only once, got {previous!r} and then {values!r}"
             )
+        given.add(self.dest)
         setattr(namespace, self.dest, values)
 
 
@@ -187,12 +190,18 @@ def _read_text(path: str, what: str) -> str:
         raise CommandLineError(f"{path}: is a directory, expected a {what}")
     try:
         with open(path, encoding="utf-8-sig") as f:  # a leading byte-order mark (Excel) is dropped
-            return f.read()
+            text = f.read(_MAX_TEXT + 1)
     except UnicodeDecodeError:
         raise CommandLineError(f"{path}: not a UTF-8 text file ({what})") from None
     except OSError as e:
         raise CommandLineError(f"{path}: cannot read ({e.strerror})") from None
+    if len(text) > _MAX_TEXT:  # (/dev/zero, a wrong file: read to the end, it ran out of memory)
+        raise CommandLineError(f"{path}: longer than {_MAX_TEXT:,} characters, expected a {what}")
+    return text
 
+
+# The longest text file read (1 Gi characters: a CSV of some 15 million observations).
+_MAX_TEXT = 2**30
 
 _LINE_END = re.compile(r"\r\n|\r|\n")
 
@@ -346,11 +355,16 @@ def _read_simulate_toml(path: str) -> tuple[dict[str, Any], dict[str, str]]:
         """The file and the line setting `key` when exactly one line plainly does (`key = …`, the key
         quoted or under `simulate.`); the file alone when none or several do — a key's text may also
         stand in a multi-line string, and an escaped, inline-table or other key form is not read
-        here — so a line that is named is never the wrong one."""
+        here — so a line that is named is never the wrong one. A file with a multi-line string or an
+        escape in a key is named alone: a `bodies = 10` line inside a string, with the key set as
+        "bod\\u0069es" on another line, was named as the line setting it."""
+        lines = _lines(text)
+        if '"""' in text or "'''" in text or any("\\" in line.split("=", 1)[0] for line in lines):
+            return path
         names = {key, f"simulate.{key}"}
         numbers = [
             number
-            for number, line in enumerate(_lines(text), start=1)
+            for number, line in enumerate(lines, start=1)
             if "=" in line and line.split("=", 1)[0].strip().strip("\"'") in names
         ]
         return f"{path} line {numbers[0]}" if len(numbers) == 1 else path
@@ -678,7 +692,10 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     if args.knots is not None:
         kwargs["knots"] = args.knots
     # Rows need not be unit: the fit scales each by its largest component and normalises it.
-    fit = fit_angular_velocity(times, quaternions, **kwargs)
+    try:
+        fit = fit_angular_velocity(times, quaternions, **kwargs)
+    except ValueError as e:  # what the file holds (e.g. times whose span overflows): name the file
+        raise CommandLineError(f"{args.file}: {_one_line(e)}") from None
     residuals = np.degrees(np.asarray(fit.residual_angles, dtype=np.float64))
     report: dict[str, Any] = {
         "model": args.model,
@@ -955,10 +972,18 @@ def _build_parser() -> argparse.ArgumentParser:
     commands.required = True
 
     demo = commands.add_parser("demo", help="10⁵-body ensemble, a fit of ω, a table and a PNG")
-    demo.add_argument("--bodies", type=_body_count, default=100_000, help="ensemble size (100000)")
-    demo.add_argument("--steps", type=_step_count, default=400, help="time steps (400)")
-    demo.add_argument("--output", default="jaxquat_demo.png", help="PNG path (./jaxquat_demo.png)")
-    demo.add_argument("--seed", type=_seed, default=0, help="random seed 0 … 2**32-1 (0)")
+    demo.add_argument(
+        "--bodies", action=_Once, type=_body_count, default=100_000, help="ensemble size (100000)"
+    )
+    demo.add_argument(
+        "--steps", action=_Once, type=_step_count, default=400, help="time steps (400)"
+    )
+    demo.add_argument(
+        "--output", action=_Once, default="jaxquat_demo.png", help="PNG path (./jaxquat_demo.png)"
+    )
+    demo.add_argument(
+        "--seed", action=_Once, type=_seed, default=0, help="random seed 0 … 2**32-1 (0)"
+    )
     demo.add_argument("--no-progress", action="store_true", help="no progress bar")
     demo.set_defaults(
         func=lambda a: run_demo(
@@ -970,37 +995,48 @@ def _build_parser() -> argparse.ArgumentParser:
     simulate.add_argument(
         "--config", action=_Once, help="TOML file with any of the options below (underscores)"
     )
-    simulate.add_argument("--bodies", type=_body_count, help="number of bodies (10000)")
-    simulate.add_argument("--steps", type=_step_count, help="number of steps (1000)")
-    simulate.add_argument("--dt", type=_positive_float, help="time step in s (0.01)")
     simulate.add_argument(
-        "--method", help="integrator (euler, midpoint, magnus4, magnus6, magnus8, cf4, naive, rk4)"
+        "--bodies", action=_Once, type=_body_count, help="number of bodies (10000)"
     )
-    simulate.add_argument("--frame", choices=_FRAMES, help="frame of ω")
+    simulate.add_argument("--steps", action=_Once, type=_step_count, help="number of steps (1000)")
+    simulate.add_argument("--dt", action=_Once, type=_positive_float, help="time step in s (0.01)")
+    simulate.add_argument(
+        "--method",
+        action=_Once,
+        help="integrator (euler, midpoint, magnus4, magnus6, magnus8, cf4, naive, rk4)",
+    )
+    simulate.add_argument("--frame", action=_Once, choices=_FRAMES, help="frame of ω")
     simulate.add_argument(
         "--omega-scale",
+        action=_Once,
         dest="omega_scale",
         type=_nonnegative_float,
         help="ω = mean + scale·N(0, I) rad/s (1.0)",
     )
-    simulate.add_argument("--omega-mean", dest="omega_mean", type=_vector3, help="x,y,z in rad/s")
+    simulate.add_argument(
+        "--omega-mean", action=_Once, dest="omega_mean", type=_vector3, help="x,y,z in rad/s"
+    )
     simulate.add_argument(
         "--inertia",
+        action=_Once,
         type=_inertia,
         help="principal moments a,b,c: simulate torque-free rigid bodies",
     )
-    simulate.add_argument("--seed", type=_seed, help="random seed 0 … 2**32-1 (0)")
-    simulate.add_argument("--dtype", choices=_DTYPES, help="float32 (default) or float64")
+    simulate.add_argument("--seed", action=_Once, type=_seed, help="random seed 0 … 2**32-1 (0)")
+    simulate.add_argument(
+        "--dtype", action=_Once, choices=_DTYPES, help="float32 (default) or float64"
+    )
     simulate.add_argument(
         "--save-every",
+        action=_Once,
         dest="save_every",
         type=_positive_int,
         help="stream the states every K steps to the output directory",
     )
     simulate.add_argument(
-        "--chunk-size", dest="chunk_size", type=_positive_int, help="steps per chunk"
+        "--chunk-size", action=_Once, dest="chunk_size", type=_positive_int, help="steps per chunk"
     )
-    simulate.add_argument("--output", help="output directory (./jaxquat_ensemble)")
+    simulate.add_argument("--output", action=_Once, help="output directory (./jaxquat_ensemble)")
     simulate.add_argument(
         "--no-statistics",
         dest="statistics",
@@ -1014,10 +1050,15 @@ def _build_parser() -> argparse.ArgumentParser:
     fit = commands.add_parser("fit", help="fit ω to a CSV of t,w,x,y,z observations")
     fit.add_argument("file", help="CSV file: t,w,x,y,z per line, header optional")
     fit.add_argument(
-        "--model", choices=("constant", "piecewise_linear", "spline"), default="constant"
+        "--model",
+        action=_Once,
+        choices=("constant", "piecewise_linear", "spline"),
+        default="constant",
     )
-    fit.add_argument("--frame", choices=("world", "body"), default="world")
-    fit.add_argument("--knots", type=_positive_int, help="number of knots (time-varying models)")
+    fit.add_argument("--frame", action=_Once, choices=("world", "body"), default="world")
+    fit.add_argument(
+        "--knots", action=_Once, type=_positive_int, help="number of knots (time-varying models)"
+    )
     fit.add_argument("--json", action="store_true", help="print the result as JSON")
     fit.set_defaults(func=_cmd_fit)
 
@@ -1041,6 +1082,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     from_command_line = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
+    args = None
     try:
         parser = _build_parser()
         # Everything after `bench` belongs to the benchmark suite.
@@ -1079,11 +1121,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BaseException as e:  # noqa: BLE001 (the contract: one line, never a traceback)
         if _out_of_memory(e):  # the machine's limit, reached by the arguments: not a bug
             reason = f" ({_one_line(e)})" if _one_line(e) else ""  # a bare MemoryError says nothing
-            print(
-                f"{_PROG}: error: out of memory{reason}; use fewer --bodies, a smaller "
-                "--chunk-size or a larger --save-every",
-                file=sys.stderr,
-            )
+            if args is not None and getattr(args, "command", None) == "fit":
+                advice = f"fitting {args.file}: fewer observations"
+            else:
+                advice = "use fewer --bodies, a smaller --chunk-size or a larger --save-every"
+            print(f"{_PROG}: error: out of memory{reason}; {advice}", file=sys.stderr)
             return 2
         print(f"{_PROG}: internal error: {type(e).__name__}: {_one_line(e)}", file=sys.stderr)
         return 1

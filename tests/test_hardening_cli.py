@@ -695,6 +695,8 @@ def test_config_given_twice_is_an_error_naming_it(tmp_path, capsys):
         ("inertia = [\n  1, # dt = 5\n  2, 3,\n]\ndt = -1\n", 5),  # in a comment: not a key
         ("# settings\n'dt' = -1\n", 2),  # quoted keys
         ('steps = 2\n"d\\u0074" = -1\n', None),  # an escaped one
+        # The key's text in a string once, and the key itself escaped: the string's line was named.
+        ('output = """o_ml\ndt = 10"""\n"d\\u0074" = -1\n', None),
         ("simulate.dt = -1\n", 1),  # a dotted key
         ("simulate = {steps = 2, dt = -1}\n", None),  # an inline table
         ("[simulate]\nsteps = 2\n\ndt = -1\n", 4),  # a table
@@ -733,3 +735,61 @@ def test_existing_file_as_output_names_the_option(tmp_path, capsys):
     )
     _assert_one_line_error(status, out, err, "--output", "results.txt", "not a directory")
     assert (tmp_path / "results.txt").read_text() == "keep me"
+
+
+@pytest.mark.parametrize(
+    "command, option, values",
+    [
+        ("simulate", "--seed", ("10", "12")),
+        ("simulate", "--dt", ("0.1", "0.2")),
+        ("demo", "--steps", ("5", "6")),
+        ("fit", "--model", ("constant", "spline")),
+    ],
+)
+def test_an_option_given_twice_is_an_error_naming_it(tmp_path, capsys, command, option, values):
+    """argparse keeps the last of a repeated option silently (`--bodies 10 … --bodies 12` ran 12)."""
+    argv = {
+        "simulate": _simulate(tmp_path),
+        "demo": ["demo", "--output", tmp_path / "demo.png", "--no-progress"],
+        "fit": ["fit", tmp_path / "obs.csv"],
+    }[command]
+    status, out, err = _run([*argv, option, values[0], option, values[1]], capsys)
+    _assert_one_line_error(status, out, err, option, "only once", values[0], values[1])
+    assert not (tmp_path / "run").exists() and not (tmp_path / "demo.png").exists()
+
+
+def test_fit_errors_about_the_data_name_the_file(tmp_path, capsys):
+    """The library's check of the times' span was printed without the file it came from."""
+    _, qs = _observations(3)
+    path = _write(tmp_path / "span.csv", _csv_lines([-1e308, 0.0, 1e308], qs))
+    status, out, err = _run(["fit", path], capsys)
+    _assert_one_line_error(status, out, err, f"{path}: ", "`times` span")
+
+
+def test_fit_out_of_memory_names_the_file_not_the_ensemble_options(tmp_path, capsys, monkeypatch):
+    times, qs = _observations(10)
+    path = _write(tmp_path / "obs.csv", _csv_lines(times, qs))
+
+    def fail(*args, **kwargs):
+        raise MemoryError()
+
+    monkeypatch.setattr("jaxquat._fitting.fit_angular_velocity", fail)
+    status, out, err = _run(["fit", path], capsys)
+    _assert_one_line_error(status, out, err, "out of memory", f"fitting {path}")
+    assert "--bodies" not in err
+
+
+def test_a_text_file_too_long_to_be_a_csv_is_refused_before_memory_runs_out(
+    tmp_path, capsys, monkeypatch
+):
+    """`fit /dev/zero` read without end until memory ran out; the reader stops at a limit (1 Gi
+    characters; 1,000 here)."""
+    monkeypatch.setattr("jaxquat._cli._MAX_TEXT", 1000)
+    times, qs = _observations(40)
+    path = _write(tmp_path / "long.csv", _csv_lines(times, qs))
+    assert len(path.read_text()) > 1000
+    status, out, err = _run(["fit", path], capsys)
+    _assert_one_line_error(status, out, err, str(path), "longer than 1,000 characters")
+    short = _write(tmp_path / "short.csv", _csv_lines(times[:5], qs[:5]))
+    status, out, err = _run(["fit", short], capsys)
+    assert status == 0 and "omega" in out, err
