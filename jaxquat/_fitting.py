@@ -657,7 +657,9 @@ def fit_angular_velocity(
     to $t_0$ by the starting ω. This needs each interval to turn the body by less than half a turn
     (|ω|Δt < π); turns within 0.25 rad of π, whose direction noise can flip, are taken on the branch
     that continues the previous interval's rate, so a body turning by exactly π per interval is
-    still fitted.
+    still fitted. The constant model also tolerates gaps: each interval's turn is taken on the
+    branch θ + 2πk nearest to what the intervals' (duration-weighted) median rate predicts, so a
+    minority of intervals may turn by more than π.
     Started at ω = 0 instead, Levenberg–Marquardt converges to a wrong local minimum as soon as the
     data span more than about half a turn.
 
@@ -762,15 +764,43 @@ def _start(times, observed, weights, knots, *, model, frame):
     Jitted on its own, so that fits with and without a user's `omega0` share one compiled solver.
     """
     rates, midpoints, durations, valid = _interval_rates(times, observed, weights, frame)
-    if model == "constant":  # the total rotation angle over the time it took
+    if model == "constant":  # the total rotation over the time it took
         durations = jnp.where(valid, durations, 0)
+        # An interval over which the body turns by more than π (a gap in the data) shows the
+        # shortest rotation instead: 3.5 rad seen as 2π − 3.5 the other way dragged the average of
+        # 58 intervals at 10 rad/s to 9, from which the fit converged to 8.56 rad/s (85° rms,
+        # converged=True). Each turn is therefore taken on the branch θ + 2πk nearest to the turn
+        # that the intervals' weighted median rate predicts.
+        turns = _nearest_branch(
+            rates * durations[:, None],
+            _weighted_median(rates, durations)[None, :] * durations[:, None],
+        )
         # (At least two positive weights make the sum positive; a traced lane with fewer gets 0.)
         total = jnp.sum(durations)
-        return jnp.sum(rates * durations[:, None], axis=0) / jnp.where(total > 0, total, 1)
+        return jnp.sum(turns, axis=0) / jnp.where(total > 0, total, 1)
     # The curve is linear in its values: its basis functions are the curve through I_K.
     basis = AngularVelocityCurve.through(knots, jnp.eye(knots.shape[0], dtype=rates.dtype), model)
     rows = valid[:, None].astype(rates.dtype)
     return jnp.linalg.lstsq(rows * basis(times[0] + midpoints), rows * rates)[0]
+
+
+def _weighted_median(values: Array, weights: Array) -> Array:
+    """The weighted median of each column of `values` (n, d) with weights (n,) ≥ 0 (the lower one
+    at a tie)."""
+    order = jnp.argsort(values, axis=0)
+    cumulative = jnp.cumsum(weights[order], axis=0)
+    index = jnp.argmax(cumulative >= 0.5 * cumulative[-1:], axis=0)
+    return jnp.take_along_axis(values, order, axis=0)[index, jnp.arange(values.shape[1])]
+
+
+def _nearest_branch(turns: Array, predicted: Array) -> Array:
+    """Each rotation vector θn̂ as (θ + 2πk)n̂, the same rotation, with the integer k that brings it
+    nearest to `predicted` (a zero rotation is kept)."""
+    angles = jnp.linalg.norm(turns, axis=-1, keepdims=True)
+    axes = turns / jnp.where(angles > 0, angles, 1)
+    along = jnp.sum(axes * predicted, axis=-1, keepdims=True)
+    k = jnp.round((along - angles) / (2 * jnp.pi))
+    return turns + (2 * jnp.pi) * k * axes
 
 
 def _reference(times, observed, weights, omega, frame):
