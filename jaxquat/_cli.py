@@ -1090,7 +1090,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         command = next((i for i, a in enumerate(argv) if not a.startswith("-")), None)
         if command is not None and argv[command] == "bench":
             argv, bench_args = argv[: command + 1], argv[command + 1 :]
-        args = parser.parse_args(argv)
+        args = parser.parse_args(_join_negative_vectors(argv))
         args.bench_args = bench_args
         args.from_command_line = from_command_line
         if args.distributed:
@@ -1129,6 +1129,26 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 2
         print(f"{_PROG}: internal error: {type(e).__name__}: {_one_line(e)}", file=sys.stderr)
         return 1
+
+
+# Options whose value is a vector `x,y,z` (which may start with a minus sign).
+_VECTOR_OPTIONS = ("--omega-mean", "--inertia")
+_NEGATIVE_VECTOR = re.compile(r"-[0-9.]")
+
+
+def _join_negative_vectors(argv: list[str]) -> list[str]:
+    """`--omega-mean -1,0,0` as `--omega-mean=-1,0,0`: argparse takes a value that starts with a
+    minus sign and is not a plain number for an option, and said "expected one argument"."""
+    joined: list[str] = []
+    i = 0
+    while i < len(argv):
+        if argv[i] in _VECTOR_OPTIONS and i + 1 < len(argv) and _NEGATIVE_VECTOR.match(argv[i + 1]):
+            joined.append(f"{argv[i]}={argv[i + 1]}")
+            i += 2
+        else:
+            joined.append(argv[i])
+            i += 1
+    return joined
 
 
 def _exit_now(status: int) -> NoReturn:

@@ -793,3 +793,19 @@ def test_a_text_file_too_long_to_be_a_csv_is_refused_before_memory_runs_out(
     short = _write(tmp_path / "short.csv", _csv_lines(times[:5], qs[:5]))
     status, out, err = _run(["fit", short], capsys)
     assert status == 0 and "omega" in out, err
+
+
+def test_vector_options_take_values_with_a_leading_minus(tmp_path, capsys):
+    """`--omega-mean -1,0,0` failed with argparse's "expected one argument" (a value that starts
+    with a minus sign and is not a plain number is taken for an option); `=-1,0,0` worked."""
+    from jaxquat._cli import _build_parser, _join_negative_vectors
+
+    argv = ["simulate", "--omega-mean", "-1,0,0.5", "--inertia", "1,2,3", "--steps", "2"]
+    args = _build_parser().parse_args(_join_negative_vectors(argv))
+    assert args.omega_mean == [-1.0, 0.0, 0.5] and args.inertia == [1.0, 2.0, 3.0]
+    assert args.steps == 2
+    status, out, err = _run(_simulate(tmp_path, "--omega-mean", "-.5,-1e-1,2"), capsys)
+    assert status == 0, err
+    # A missing value is still reported as one (the next option is not taken for a vector).
+    status, out, err = _run([*_simulate(tmp_path / "x"), "--omega-mean"], capsys)
+    _assert_one_line_error(status, out, err, "--omega-mean", "expected one argument")
