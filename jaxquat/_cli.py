@@ -41,10 +41,16 @@ class _Interrupted(KeyboardInterrupt):
 
 
 class _Parser(argparse.ArgumentParser):
-    """An `ArgumentParser` whose errors become one-line `CommandLineError`s instead of usage + exit."""
+    """An `ArgumentParser` whose errors become one-line `CommandLineError`s instead of usage + exit,
+    and whose options that take a value may be given only once (`_Once`, the default action)."""
 
     def error(self, message: str):  # noqa: D102 (argparse's signature)
         raise CommandLineError(message, prog=self.prog)
+
+    def add_argument(self, *names, **kwargs):  # noqa: D102 (argparse's signature)
+        if names and names[0].startswith("-") and "action" not in kwargs:
+            kwargs["action"] = _Once
+        return super().add_argument(*names, **kwargs)
 
 
 class _Once(argparse.Action):
@@ -972,18 +978,10 @@ def _build_parser() -> argparse.ArgumentParser:
     commands.required = True
 
     demo = commands.add_parser("demo", help="10⁵-body ensemble, a fit of ω, a table and a PNG")
-    demo.add_argument(
-        "--bodies", action=_Once, type=_body_count, default=100_000, help="ensemble size (100000)"
-    )
-    demo.add_argument(
-        "--steps", action=_Once, type=_step_count, default=400, help="time steps (400)"
-    )
-    demo.add_argument(
-        "--output", action=_Once, default="jaxquat_demo.png", help="PNG path (./jaxquat_demo.png)"
-    )
-    demo.add_argument(
-        "--seed", action=_Once, type=_seed, default=0, help="random seed 0 … 2**32-1 (0)"
-    )
+    demo.add_argument("--bodies", type=_body_count, default=100_000, help="ensemble size (100000)")
+    demo.add_argument("--steps", type=_step_count, default=400, help="time steps (400)")
+    demo.add_argument("--output", default="jaxquat_demo.png", help="PNG path (./jaxquat_demo.png)")
+    demo.add_argument("--seed", type=_seed, default=0, help="random seed 0 … 2**32-1 (0)")
     demo.add_argument("--no-progress", action="store_true", help="no progress bar")
     demo.set_defaults(
         func=lambda a: run_demo(
@@ -992,51 +990,39 @@ def _build_parser() -> argparse.ArgumentParser:
     )
 
     simulate = commands.add_parser("simulate", help="run an ensemble; write results and a summary")
-    simulate.add_argument(
-        "--config", action=_Once, help="TOML file with any of the options below (underscores)"
-    )
-    simulate.add_argument(
-        "--bodies", action=_Once, type=_body_count, help="number of bodies (10000)"
-    )
-    simulate.add_argument("--steps", action=_Once, type=_step_count, help="number of steps (1000)")
-    simulate.add_argument("--dt", action=_Once, type=_positive_float, help="time step in s (0.01)")
+    simulate.add_argument("--config", help="TOML file with any of the options below (underscores)")
+    simulate.add_argument("--bodies", type=_body_count, help="number of bodies (10000)")
+    simulate.add_argument("--steps", type=_step_count, help="number of steps (1000)")
+    simulate.add_argument("--dt", type=_positive_float, help="time step in s (0.01)")
     simulate.add_argument(
         "--method",
-        action=_Once,
         help="integrator (euler, midpoint, magnus4, magnus6, magnus8, cf4, naive, rk4)",
     )
-    simulate.add_argument("--frame", action=_Once, choices=_FRAMES, help="frame of ω")
+    simulate.add_argument("--frame", choices=_FRAMES, help="frame of ω")
     simulate.add_argument(
         "--omega-scale",
-        action=_Once,
         dest="omega_scale",
         type=_nonnegative_float,
         help="ω = mean + scale·N(0, I) rad/s (1.0)",
     )
-    simulate.add_argument(
-        "--omega-mean", action=_Once, dest="omega_mean", type=_vector3, help="x,y,z in rad/s"
-    )
+    simulate.add_argument("--omega-mean", dest="omega_mean", type=_vector3, help="x,y,z in rad/s")
     simulate.add_argument(
         "--inertia",
-        action=_Once,
         type=_inertia,
         help="principal moments a,b,c: simulate torque-free rigid bodies",
     )
-    simulate.add_argument("--seed", action=_Once, type=_seed, help="random seed 0 … 2**32-1 (0)")
-    simulate.add_argument(
-        "--dtype", action=_Once, choices=_DTYPES, help="float32 (default) or float64"
-    )
+    simulate.add_argument("--seed", type=_seed, help="random seed 0 … 2**32-1 (0)")
+    simulate.add_argument("--dtype", choices=_DTYPES, help="float32 (default) or float64")
     simulate.add_argument(
         "--save-every",
-        action=_Once,
         dest="save_every",
         type=_positive_int,
         help="stream the states every K steps to the output directory",
     )
     simulate.add_argument(
-        "--chunk-size", action=_Once, dest="chunk_size", type=_positive_int, help="steps per chunk"
+        "--chunk-size", dest="chunk_size", type=_positive_int, help="steps per chunk"
     )
-    simulate.add_argument("--output", action=_Once, help="output directory (./jaxquat_ensemble)")
+    simulate.add_argument("--output", help="output directory (./jaxquat_ensemble)")
     simulate.add_argument(
         "--no-statistics",
         dest="statistics",
@@ -1051,14 +1037,11 @@ def _build_parser() -> argparse.ArgumentParser:
     fit.add_argument("file", help="CSV file: t,w,x,y,z per line, header optional")
     fit.add_argument(
         "--model",
-        action=_Once,
         choices=("constant", "piecewise_linear", "spline"),
         default="constant",
     )
-    fit.add_argument("--frame", action=_Once, choices=("world", "body"), default="world")
-    fit.add_argument(
-        "--knots", action=_Once, type=_positive_int, help="number of knots (time-varying models)"
-    )
+    fit.add_argument("--frame", choices=("world", "body"), default="world")
+    fit.add_argument("--knots", type=_positive_int, help="number of knots (time-varying models)")
     fit.add_argument("--json", action="store_true", help="print the result as JSON")
     fit.set_defaults(func=_cmd_fit)
 

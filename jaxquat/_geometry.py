@@ -244,10 +244,11 @@ def mean(
                 f"got shape {tuple(weights.shape)}."
             ) from e
         if not is_tracer(weights) and bool(jnp.any(weights < 0)):
+            values = np.asarray(weights)
+            index = np.unravel_index(np.argmin(values), values.shape)
             raise ValueError(
                 "`weights` must be non-negative (as for SciPy's `Rotation.mean`); got "
-                f"{float(jnp.min(weights))} at index "
-                f"{tuple(int(i) for i in np.unravel_index(int(jnp.argmin(weights)), weights.shape))}."
+                f"{values[index]} at index {tuple(int(i) for i in index)}."
             )
         outer = weights.astype(q.dtype)[..., None, None] * outer
     moment = jnp.sum(outer, axis=axis)
