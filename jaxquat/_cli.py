@@ -151,7 +151,20 @@ def _nonnegative_float(text: str) -> float:
     return value
 
 
+class _TomlFloat(float):
+    """A TOML float that keeps its text, so `dt = 1e-400` is reported as underflowing, not as 0."""
+
+    text: str
+
+    def __new__(cls, text: str) -> _TomlFloat:
+        value = super().__new__(cls, text)
+        value.text = text
+        return value
+
+
 def _finite_float(text: str) -> float:
+    if isinstance(text, _TomlFloat):
+        text = text.text.replace("_", "")  # TOML allows 1_000.5
     if isinstance(text, bool) or not (
         isinstance(text, (int, float)) or (isinstance(text, str) and _is_number(text))
     ):
@@ -351,7 +364,7 @@ def _read_simulate_toml(path: str) -> tuple[dict[str, Any], dict[str, str]]:
 
     text = _read_text(path, "TOML configuration")
     try:
-        table = tomllib.loads(text)
+        table = tomllib.loads(text, parse_float=_TomlFloat)
     except tomllib.TOMLDecodeError as e:
         raise CommandLineError(f"{path}: invalid TOML: {e}") from None
     if "simulate" in table and isinstance(table["simulate"], dict) and len(table) == 1:
@@ -413,7 +426,9 @@ def _read_simulate_toml(path: str) -> tuple[dict[str, Any], dict[str, str]]:
                     f"{where(key)}: {key} must be a number (unquoted), got {value!r}"
                 )
             try:
-                value = parse(value if key in _VECTOR_KEYS else str(value))
+                value = parse(
+                    value if key in _VECTOR_KEYS or isinstance(value, _TomlFloat) else str(value)
+                )
             except argparse.ArgumentTypeError as e:
                 raise CommandLineError(f"{where(key)}: {key} {e}") from None
         config[key] = value

@@ -721,6 +721,35 @@ def test_option_underflowing_to_zero_says_so(tmp_path, capsys):
     _assert_one_line_error(status, out, err, "--dt", "'1e-400' underflows to 0")
 
 
+@pytest.mark.parametrize(
+    ("line", "fragments"),
+    [
+        ("dt = 1e-400", ("line 2", "dt", "'1e-400' underflows to 0")),
+        ("omega_scale = 1_0e-4_00", ("line 2", "omega_scale", "'10e-400' underflows to 0")),
+        ("omega_mean = [0.0, 2e-324, 1]", ("line 2", "omega_mean", "'2e-324' underflows to 0")),
+    ],
+)
+def test_toml_number_underflowing_to_zero_says_so(tmp_path, capsys, line, fragments):
+    """tomllib reads 1e-400 as 0.0; the file's own text is what the message quotes (it once said
+    "must be positive, got 0")."""
+    config = tmp_path / "conf.toml"
+    config.write_text(f"steps = 2\n{line}\n")
+    status, out, err = _run(
+        ["simulate", "--config", config, "--no-progress", "--output", tmp_path / "run"], capsys
+    )
+    _assert_one_line_error(status, out, err, "conf.toml", *fragments)
+
+
+def test_toml_zero_and_underscored_numbers_are_still_read(tmp_path):
+    from jaxquat._cli import read_simulate_toml
+
+    config = tmp_path / "conf.toml"
+    config.write_text("dt = 1_0.0e-3\nomega_scale = 0.0\nomega_mean = [0.0, -0e5, 1_000.5]\n")
+    read = read_simulate_toml(str(config))
+    assert read == {"dt": 0.01, "omega_scale": 0.0, "omega_mean": [0.0, 0.0, 1000.5]}
+    assert all(type(v) is float for v in [read["dt"], read["omega_scale"], *read["omega_mean"]])
+
+
 def test_non_finite_float64_results_do_not_advise_float64(tmp_path, capsys):
     options = ["--dt", "1e300", "--omega-scale", "1e10", "--dtype", "float64"]
     status, out, err = _run(_simulate(tmp_path, *options), capsys)
