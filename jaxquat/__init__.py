@@ -6,6 +6,12 @@ world frame unless `frame="body"`.
 """
 
 import importlib.metadata as _metadata
+import sys as _sys
+
+if _sys.argv[:1] == ["-m"]:  # `python -m jaxquat`: Python sets argv[0] to "-m" while it loads us
+    from ._interrupt import quiet_while_loading as _quiet_while_loading
+
+    _quiet_while_loading()
 
 # Algebra
 from ._algebra import (
@@ -111,3 +117,8 @@ try:
     __version__ = _metadata.version("jaxquat")
 except _metadata.PackageNotFoundError:  # running from a source tree without install
     __version__ = "0+unknown"
+
+if _sys.argv[:1] == ["-m"]:
+    from ._interrupt import loaded as _loaded
+
+    _loaded()

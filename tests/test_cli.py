@@ -407,3 +407,57 @@ def test_simulate_into_an_unwritable_output_is_one_line_error(tmp_path, capsys):
     status, out, err = _run([*argv, "--no-progress"], capsys)
     _assert_one_line_error(status, err, str(target))
     assert "internal error" not in err
+
+
+# Ctrl-C while `python -m jaxquat` imports the package itself (jax takes about a second to load),
+# before __main__ exists to catch it: a real SIGINT, sent when the package first imports jax. This once
+# printed a traceback through runpy.
+_SIGINT_ON_IMPORTING_JAX = """
+import os, signal, sys
+class SignalOnJax:
+    def find_spec(self, name, path=None, target=None):
+        if name == "jax":
+            sys.meta_path.remove(self)
+            os.kill(os.getpid(), signal.SIGINT)
+sys.meta_path.insert(0, SignalOnJax())
+"""
+
+
+def test_ctrl_c_while_python_m_jaxquat_imports_the_package_is_one_line_and_130(tmp_path):
+    (tmp_path / "sitecustomize.py").write_text(_SIGINT_ON_IMPORTING_JAX)
+    path = os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    process = subprocess.run(
+        [sys.executable, "-m", "jaxquat", "demo", "--help"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        env=dict(os.environ, PYTHONPATH=path, JAX_PLATFORMS="cpu"),
+        timeout=300,
+    )
+    assert (process.returncode, process.stderr, process.stdout) == (
+        130,
+        "jaxquat: interrupted\n",
+        "",
+    )
+
+
+def test_importing_jaxquat_as_a_library_keeps_the_sigint_handler(tmp_path):
+    """Only `python -m jaxquat` handles Ctrl-C while loading; a program importing jaxquat keeps its
+    KeyboardInterrupt, and its own handler is left alone."""
+    script = (
+        "import signal, sys\n"
+        "mine = lambda *a: None\n"
+        "signal.signal(signal.SIGINT, mine)\n"
+        "import jaxquat\n"
+        "assert signal.getsignal(signal.SIGINT) is mine\n"
+        "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
+        "sys.argv = ['-m']\n"  # as while `python -m jaxquat` loads the package
+        "import importlib, jaxquat\n"
+        "importlib.reload(jaxquat)\n"
+        "assert signal.getsignal(signal.SIGINT) is signal.default_int_handler\n"
+        "print('ok')\n"
+    )
+    process = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path, timeout=300
+    )
+    assert process.stdout == "ok\n", process.stderr
