@@ -956,6 +956,8 @@ def integrate_fast(
     compensated,
     renormalize_every,
     unroll,
+    aligned=False,
+    time_eps=None,
 ):
     """`integrate` for `method="euler"` with a constant ω array or `jaxquat.sampled` data, uncompensated,
     saving the final state or every step; `None` for anything else.
@@ -999,13 +1001,29 @@ def integrate_fast(
         save=save,
         renormalize_every=renormalize_every,
         unroll=max(unroll, POWERS_UNROLL),
+        on_grid=aligned,
+        time_eps=time_eps,
     )
 
 
 @functools.partial(
     eqx.filter_jit,
 )
-def _integrate_fast(q0, omega, dt, t0, *, batch, num_steps, frame, save, renormalize_every, unroll):
+def _integrate_fast(
+    q0,
+    omega,
+    dt,
+    t0,
+    *,
+    batch,
+    num_steps,
+    frame,
+    save,
+    renormalize_every,
+    unroll,
+    on_grid,
+    time_eps,
+):
     from ._integrate import Sampled
 
     dtype = q0.dtype
@@ -1031,7 +1049,7 @@ def _integrate_fast(q0, omega, dt, t0, *, batch, num_steps, frame, save, renorma
     # samples (no gathered copy of the samples either way).
     shift = t0.astype(time_dtype) - jnp.asarray(omega.t0).astype(time_dtype)
     offsets = shift + jnp.arange(num_steps, dtype=time_dtype) * dt.astype(time_dtype)
-    indices = omega._index(offsets, jnp.abs(offsets) + jnp.abs(shift), dt < 0)
+    indices = omega._index(offsets, jnp.abs(offsets) + jnp.abs(shift), dt < 0, time_eps)
     length = omega.omegas.shape[0]
     # (L, *sample batch, 3) against the bodies' batch: align the batch axes from the right, never
     # the time axis (a plain broadcast_to would pair L with the first body axis).
@@ -1039,7 +1057,9 @@ def _integrate_fast(q0, omega, dt, t0, *, batch, num_steps, frame, save, renorma
     missing = len(batch) - (samples.ndim - 2)
     samples = samples.reshape((length,) + (1,) * missing + samples.shape[1:])
     samples = jnp.broadcast_to(samples, (length,) + batch + (3,))
-    aligned = jnp.all(indices == jnp.arange(num_steps, dtype=indices.dtype))
+    # On the grid step k holds sample k. `on_grid`: `integrate` found dt and t0 equal to the samples'
+    # (`_same_value`, the rule of its other methods), whatever the lookup by time would give.
+    aligned = on_grid or jnp.all(indices == jnp.arange(num_steps, dtype=indices.dtype))
 
     def final_state(indices, samples):
         # The run takes the exponential's series in θ² (no sin/cos, which XLA:CPU evaluates slowly)
@@ -1119,12 +1139,16 @@ def _integrate_fast(q0, omega, dt, t0, *, batch, num_steps, frame, save, renorma
         )
 
     if save == "final":
+        if aligned is True:
+            return final_state(None, samples)
         return lax.cond(
             aligned,
             functools.partial(final_state, None),
             functools.partial(final_state, indices),
             samples,
         )
+    if aligned is True:
+        return trajectory_on_grid(samples)
     return lax.cond(
         aligned, trajectory_on_grid, functools.partial(trajectory, False, indices), samples
     )

@@ -560,27 +560,30 @@ class Sampled(eqx.Module):
         index = self._index(t - self.t0, jnp.abs(t) + jnp.abs(self.t0), False)
         return lax.dynamic_index_in_dim(self.omegas, index, axis=0, keepdims=False)
 
-    def _index(self, offset, scale, backward) -> Array:
+    def _index(self, offset, scale, backward, eps: float | None = None) -> Array:
         """The sample index at `offset` = t − t0 (int32, clipped to the samples), `scale` bounding the
         magnitudes of the times it was computed from. A time t0 + kΔt formed in floating point misses
         the k-th boundary by up to ~3 ε·scale/Δt samples (measured: 1.9 for t0 + kΔt, 3.0 for diffrax's
         t0 + (t1 − t0)·k/n), so a time within 4 ε(1 + scale/Δt) samples of a boundary counts as on it.
+        ε is that of the offsets' dtype, or the coarser `eps` of the times they were formed from (a
+        float32 Δt of 0.7 is 0.699999988: its steps fall 2e-8·k samples short of a float64 0.7 grid,
+        which counts as on it, as `integrate`'s on-grid test `_same_value` has it).
         Forwards a boundary belongs to the interval after it; `backward` (a step going back in time, a
         bool or traced bool) gives it to the interval before, the one that step crosses, so the
         Lie–Euler step at the start of a backward step holds the sample it undoes."""
         s = offset / self.dt
-        eps = float(jnp.finfo(s.dtype).eps)
+        eps = max(float(jnp.finfo(s.dtype).eps), eps or 0.0)
         margin = 4.0 * eps * (1.0 + scale / jnp.abs(self.dt))
         index = jnp.where(backward, jnp.ceil(s - margin) - 1.0, jnp.floor(s + margin))
         return jnp.clip(index, 0, self.omegas.shape[0] - 1).astype(jnp.int32)
 
-    def _relative(self, shift, backward) -> Callable:
+    def _relative(self, shift, backward, eps: float | None = None) -> Callable:
         """ω(τ, q) at the offset τ = t − t0 from the first sample, for integrators that form their times
         as `shift + k·h` (shift = their t0 − this t0): the lookup then carries the round-off of small
         offsets, not of large absolute times (float32 at t ≈ 10³ s resolves only ~6e-5 s)."""
 
         def omega(offset, q=None):
-            index = self._index(offset, jnp.abs(offset) + jnp.abs(shift), backward)
+            index = self._index(offset, jnp.abs(offset) + jnp.abs(shift), backward, eps)
             return lax.dynamic_index_in_dim(self.omegas, index, axis=0, keepdims=False)
 
         return omega
@@ -636,6 +639,8 @@ def sampled(omegas: ArrayLike, dt: ArrayLike, *, t0: ArrayLike = 0.0) -> Sampled
         value = float(dt)
         if not (math.isfinite(value) and value > 0):
             raise ValueError(f"`dt` (the sampling interval) must be finite and > 0; got {value}.")
+    if not is_tracer(t0) and not math.isfinite(float(t0)):
+        raise ValueError(f"`t0` (the time of the first sample) must be finite; got {float(t0)}.")
     return Sampled(omegas, dt, t0)
 
 
@@ -656,6 +661,13 @@ def _same_value(a: Array, b: Array, scale: Array) -> bool:
 def _eps_of(x) -> float:
     dtype = x.dtype if hasattr(x, "dtype") else np.float64
     return float(np.finfo(dtype).eps)
+
+
+def _check_finite(x: Array, name: str) -> Array:
+    """`x`, after a ValueError if it is concrete and not finite (a NaN t0 once picked sample 0)."""
+    if not is_tracer(x) and not bool(jnp.isfinite(x)):
+        raise ValueError(f"`{name}` must be finite; got {float(x)}.")
+    return x
 
 
 def _check_scalar(x: ArrayLike, name: str) -> Array:
@@ -801,8 +813,8 @@ def integrate(
     checkpoint = _check_flag(checkpoint, "checkpoint")
     q0 = check_trailing(q0, 4, "q0")
     dt_given, t0_given = dt, t0
-    dt = _check_scalar(dt, "dt")
-    t0 = _check_scalar(t0, "t0")
+    dt = _check_finite(_check_scalar(dt, "dt"), "dt")
+    t0 = _check_finite(_check_scalar(t0, "t0"), "t0")
     if compensated is None:
         compensated = method in LIE_METHODS and jnp.dtype(q0.dtype).itemsize < 8
     elif compensated and method not in LIE_METHODS:
@@ -818,8 +830,11 @@ def integrate(
         and _same_value(omega.dt, dt_given, dt_given)
         and _same_value(omega.t0, t0_given, dt_given)
     )
+    time_eps = None
     if isinstance(omega, Sampled):
         omega = Sampled(omega.omegas, _check_scalar(omega.dt, "dt"), _check_scalar(omega.t0, "t0"))
+        # Sample lookups by time allow the round-off of the coarsest time given (see `Sampled._index`).
+        time_eps = max(_eps_of(x) for x in (dt, t0, omega.dt, omega.t0))
     # Lie–Euler with a constant or sampled ω takes the restructured loop of `_fastpath` (issue 8).
     fast = integrate_fast(
         q0,
@@ -834,6 +849,8 @@ def integrate(
         compensated=bool(compensated),
         renormalize_every=renormalize_every,
         unroll=unroll,
+        aligned=aligned,
+        time_eps=time_eps,
     )
     if fast is not None:
         return fast
@@ -843,6 +860,7 @@ def integrate(
         dt,
         t0,
         aligned=aligned,
+        time_eps=time_eps,
         num_steps=num_steps,
         frame=frame,
         method=method,
@@ -863,6 +881,7 @@ def _integrate(
     t0,
     *,
     aligned,
+    time_eps,
     num_steps,
     frame,
     method,
@@ -901,7 +920,7 @@ def _integrate(
         if isinstance(user_omega, Sampled):
             # Times relative to the first sample (see `Sampled._relative`): `time(k)` below.
             shift = t0 - jnp.asarray(user_omega.t0).astype(time_dtype)
-            source = user_omega._relative(shift, dt < 0)
+            source = user_omega._relative(shift, dt < 0, time_eps)
             t0 = shift
     else:
         batch = _broadcast_shapes(batch, omega.shape[:-1], "omega", tuple(omega.shape))

@@ -768,6 +768,49 @@ def test_bad_arguments_raise_value_errors_naming_them():
         jq.sampled(jnp.ones(3), 0.1)
 
 
+@pytest.mark.parametrize(
+    ("dt", "t0"),
+    [(np.nan, 0.0), (np.inf, 0.0), (-np.inf, 0.0), (0.1, np.nan), (0.1, np.inf)],
+)
+def test_non_finite_dt_or_t0_is_a_value_error(dt, t0):
+    """A NaN t0 with sampled ω once clipped to sample 0 and returned a plausible rotation (0.5 rad);
+    a non-finite dt returned NaN. Every ω form: array, callable, samples."""
+    name = "dt" if not np.isfinite(dt) else "t0"
+    omegas = jnp.ones((10, 3))
+    for omega in (jnp.ones(3), lambda t, q: jnp.ones(3) * t, jq.sampled(omegas, 0.1)):
+        for method in ("euler", "midpoint"):
+            with pytest.raises(ValueError, match=f"`{name}` must be finite"):
+                jq.integrate(jq.identity(), omega, dt, 5, t0=t0, method=method, save="final")
+    if name == "t0":
+        with pytest.raises(ValueError, match="`t0`.*must be finite"):
+            jq.sampled(omegas, 0.1, t0=t0)
+
+
+@pytest.mark.parametrize("method", ["euler", "midpoint", "magnus4"])
+@pytest.mark.parametrize("save_every", [1, 2])
+def test_sampled_grid_is_one_rule_on_every_path(method, save_every, getkey):
+    """A float32 Δt of 0.7 (0.699999988) against samples every float64 0.7: `integrate` counts the grids
+    as one (within a few ulp of the coarser dtype), so step k holds sample k on every path — the
+    Lie–Euler fast path once read sample k − 1 from step 1 on (1.04 rad off), and under `jit` with Δt
+    traced every path did. Reference: SciPy's composition of the steps' rotations."""
+    steps = 6
+    omegas = jax.random.normal(getkey(), (steps, 3))
+    samples = jq.sampled(omegas, 0.7)
+    dt32 = np.float32(0.7)
+    rotation = Rotation.identity()
+    for k in range(steps):
+        rotation = Rotation.from_rotvec(np.asarray(omegas[k]) * float(dt32)) * rotation
+    expected = jq.from_xyzw(jnp.asarray(rotation.as_quat()))
+
+    def run(dt):
+        return jq.integrate(
+            jq.identity(), samples, dt, steps, method=method, save="all", save_every=save_every
+        )[-1]
+
+    for q in (run(dt32), jax.jit(run)(dt32)):
+        assert quat_distance(q, expected) <= 1e-6
+
+
 def test_sampled_on_the_grid_equals_the_time_lookup(getkey):
     """Samples on the integration grid are scanned over as per-step inputs (cheap reverse mode); the
     result and its gradient equal the time lookup of `Sampled.__call__` (forced here by a traced dt),
