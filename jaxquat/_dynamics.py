@@ -47,9 +47,13 @@ _METHODS = ("euler", "midpoint", "cf4", "naive", "rk4")
 
 
 def _check_positive_masses(masses: Array) -> None:
-    """Raise a `ValueError` for non-positive masses (only when they are concrete)."""
-    if not is_tracer(masses) and np.any(np.asarray(masses) <= 0):
-        raise ValueError("`masses` must be positive.")
+    """Raise a `ValueError` for non-positive or non-finite masses (only when they are concrete; a NaN
+    mass once gave an all-NaN centre of mass and inertia without a word)."""
+    if not is_tracer(masses):
+        values = np.asarray(masses)
+        bad = values[~(np.isfinite(values) & (values > 0))]
+        if bad.size:
+            raise ValueError(f"`masses` must be positive and finite; got {bad.flat[0]}.")
 
 
 def _check_point_masses(masses: ArrayLike, positions: ArrayLike):

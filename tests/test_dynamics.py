@@ -600,6 +600,15 @@ def test_invalid_inputs_raise():
         jq.center_of_mass(jnp.ones(4), jnp.ones((5, 3)))
     with pytest.raises(ValueError, match="masses"):
         jq.inertia_tensor(jnp.array([1.0, -1.0]), jnp.ones((2, 3)))
+    for bad in (np.nan, np.inf):  # once an all-NaN result without a word
+        masses = jnp.array([1.0, bad, 2.0])
+        points = jnp.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+        with pytest.raises(ValueError, match="`masses` must be positive and finite"):
+            jq.center_of_mass(masses, points)
+        with pytest.raises(ValueError, match="`masses` must be positive and finite"):
+            jq.inertia_tensor(masses, points)
+        with pytest.raises(ValueError, match="`masses` must be positive and finite"):
+            jq.simulate_deformable_body(masses, lambda t, p=points: p * (1.0 + t), Q0, 0.1, 2)
     with pytest.raises(ValueError, match="positions"):
         jq.inertia_tensor(jnp.ones(2), jnp.ones((2, 2)))
     with pytest.raises(ValueError, match="velocities"):
