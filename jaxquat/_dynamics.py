@@ -632,7 +632,7 @@ def simulate_deformable_body(
     dt = _check_scalar(dt, "dt").astype(dtype)
     try:  # a nested list is an array too (as in the integration below)
         shape = jax.eval_shape(lambda t: jnp.asarray(positions(t)), t0).shape
-    except TypeError as e:
+    except (TypeError, ValueError) as e:  # None: "None is not a valid value for jnp.array"
         raise ValueError(
             f"`positions(t)` must return an array of shape (n, 3); calling it at t0 gave: {e}"
         ) from None

@@ -600,6 +600,8 @@ def test_invalid_inputs_raise():
         jq.center_of_mass(jnp.ones(4), jnp.ones((5, 3)))
     with pytest.raises(ValueError, match="masses"):
         jq.inertia_tensor(jnp.array([1.0, -1.0]), jnp.ones((2, 3)))
+    with pytest.raises(ValueError, match=r"`positions\(t\)` must return an array"):
+        jq.simulate_deformable_body(jnp.ones(3), lambda t: None, Q0, 0.1, 2)
     for bad in (np.nan, np.inf):  # once an all-NaN result without a word
         masses = jnp.array([1.0, bad, 2.0])
         points = jnp.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
