@@ -46,6 +46,7 @@ from ._numerics import (
     check_trailing,
     cross,
     is_tracer,
+    safe_norm,
 )
 from ._rotation import from_rotvec, rotate_unchecked
 
@@ -257,7 +258,7 @@ def _unwrap(turns: Array, durations: Array, valid: Array) -> Array:
     therefore replaced by its other branch (θ − 2π)n̂ when that rate is nearer the previous one; all
     other turns (the documented domain |ω|Δt < π, away from its edge) are kept as they are.
     """
-    angles = jnp.linalg.norm(turns, axis=-1, keepdims=True)
+    angles = safe_norm(turns, axis=-1, keepdims=True)  # (a body at rest: no NaN in reverse mode)
     safe = jnp.where(angles > 0, angles, 1)
     rates = turns / durations[:, None]
     others = rates * (1 - 2 * jnp.pi / safe)
@@ -796,7 +797,7 @@ def _weighted_median(values: Array, weights: Array) -> Array:
 def _nearest_branch(turns: Array, predicted: Array) -> Array:
     """Each rotation vector θn̂ as (θ + 2πk)n̂, the same rotation, with the integer k that brings it
     nearest to `predicted` (a zero rotation is kept)."""
-    angles = jnp.linalg.norm(turns, axis=-1, keepdims=True)
+    angles = safe_norm(turns, axis=-1, keepdims=True)  # (zero turns: no NaN in reverse mode)
     axes = turns / jnp.where(angles > 0, angles, 1)
     along = jnp.sum(axes * predicted, axis=-1, keepdims=True)
     k = jnp.round((along - angles) / (2 * jnp.pi))
@@ -952,7 +953,7 @@ def _strided_rates(times: Array, qs: Array, weights: Array) -> tuple[Array, ...]
     tau = (times - times[0])[order]
     qs = qs[order]
     index = jnp.arange(num - 1)
-    turns = jnp.linalg.norm(angular_velocity(qs, 1.0, frame="body"), axis=-1)  # angles
+    turns = safe_norm(angular_velocity(qs, 1.0, frame="body"), axis=-1)  # angles
     typical = jnp.nanmedian(jnp.where(index + 1 < count, turns, jnp.nan))
     stride = jnp.clip(jnp.round(0.3 / typical), 1, jnp.maximum(count // 4, 1)).astype(index.dtype)
     stride = jnp.where(jnp.isfinite(typical) & (typical > 0), stride, 1)

@@ -342,6 +342,49 @@ def test_derivative_at_a_zero_weight_is_finite_and_correct(weighted_case, model)
     assert np.min(np.linalg.norm(reverse[:, [7, 23]], axis=0)) > 1e-3
 
 
+def test_reverse_mode_through_the_automatic_start_is_not_nan(weighted_case):
+    """Without `omega0` the fit starts from log-differences of the observations; the norm of a zero
+    turn there (the bridged interval of a weight-0 observation) made jacrev NaN in the times and the
+    observations, while jacfwd was finite. Both must agree, and with central differences."""
+    c = weighted_case
+    times, qs, w = (jnp.asarray(c[k]) for k in ("times", "qs", "weights"))
+
+    def omega_hat(times, qs):
+        return jaxquat.fit_angular_velocity(times, qs, weights=w).omega
+
+    reverse = jax.jacrev(omega_hat, argnums=(0, 1))(times, qs)
+    forward = jax.jacfwd(omega_hat, argnums=(0, 1))(times, qs)
+    for r, f in zip(reverse, forward, strict=True):
+        assert np.all(np.isfinite(np.asarray(r)))
+        np.testing.assert_allclose(r, f, rtol=1e-8, atol=1e-12)
+    eps = 1e-6
+    for k in (0, 7, 8):  # the first time, an outlier's, the one after it
+        step = jnp.zeros_like(times).at[k].set(eps)
+        difference = (omega_hat(times + step, qs) - omega_hat(times - step, qs)) / (2 * eps)
+        np.testing.assert_allclose(reverse[0][:, k], difference, rtol=1e-6, atol=1e-8)
+
+
+@pytest.mark.parametrize("model", ["constant", "piecewise_linear"])
+def test_reverse_mode_at_rest_is_not_nan(model):
+    """A body at rest (every observation the identity): all turns are exactly zero, and jacrev was NaN for every
+    model. The derivative in an observation must match central differences."""
+    times = jnp.linspace(0.0, 5.0, 12)
+    rest = jnp.tile(jaxquat.identity(), (12, 1))
+    knots = None if model == "constant" else jnp.linspace(0.0, 5.0, 3)
+
+    def omega_hat(qs):
+        omega = jaxquat.fit_angular_velocity(times, qs, model=model, knots=knots).omega
+        return omega if model == "constant" else omega(2.0)
+
+    reverse = np.asarray(jax.jacrev(omega_hat)(rest))
+    assert np.all(np.isfinite(reverse))
+    eps = 1e-6
+    for k, i in ((3, 1), (11, 3)):
+        step = jnp.zeros_like(rest).at[k, i].set(eps)
+        difference = (omega_hat(rest + step) - omega_hat(rest - step)) / (2 * eps)
+        np.testing.assert_allclose(reverse[:, k, i], difference, rtol=1e-6, atol=1e-8)
+
+
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_loss_derivative_in_the_weights_is_the_envelope(weighted_case, dtype):
     """d loss / d wₖ = ½|ρₖ|² = 2 sin²(θₖ/2) at the optimum (envelope theorem: the fit's own change
