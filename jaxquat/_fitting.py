@@ -270,7 +270,18 @@ def _unwrap(turns: Array, durations: Array, valid: Array) -> Array:
         chosen = jnp.where(near_pi & nearer, other, rate)
         return jnp.where(ok, chosen, last), chosen
 
-    first = rates[jnp.argmax(valid)]
+    # The chain starts from the first valid interval's rate. If that turn is itself near π, noise may
+    # have flipped it, and every near-π interval after it followed (a review: one observation off by
+    # 0.01 rad gave residuals of 2.8 rad with converged=True). It is then taken on the branch whose
+    # sign along the rates' dominant axis agrees with most intervals' (a discrete choice: no
+    # derivative flows through it).
+    index = jnp.argmax(valid)
+    plain = lax.stop_gradient(jnp.where(valid[:, None], rates, 0))
+    axis = jnp.linalg.eigh(plain.T @ plain)[1][:, -1]
+    along = plain @ axis
+    majority = jnp.sum(jnp.sign(along))
+    flip = ambiguous[index] & (along[index] * majority < 0)
+    first = jnp.where(flip, others[index], rates[index])
     return lax.scan(choose, first, (rates, others, valid, ambiguous))[1]
 
 

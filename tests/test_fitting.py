@@ -920,3 +920,26 @@ def test_constant_fit_with_gaps_covering_most_of_the_span(frame):
         assert fit.converged
         np.testing.assert_allclose(fit.omega, omega, atol=tolerance)
         assert float(np.max(fit.residual_angles)) < max(1e-9, 5 * SIGMA)
+
+
+@pytest.mark.parametrize("model", ["piecewise_linear", "spline"])
+def test_curve_fit_when_noise_flips_the_first_near_half_turn(model):
+    """A body turning by 0.88–0.999π per interval about a tilted axis; observation 1 is 0.01 rad off,
+    which flips the first interval's shortest rotation to the other way. The curve fits' branch chain
+    started from that interval and took every near-π turn backwards (a review: residuals of 2.8 rad,
+    converged=True). The fit must reach the minimum it reaches from the true ω."""
+    rng = np.random.default_rng(0)
+    axis = Rotation.from_rotvec([0.3, 0.2, 0.1]).apply([0.0, 0.0, 1.0])
+    omega = np.pi * axis
+    times = np.r_[0.0, np.cumsum(np.r_[0.999, rng.uniform(0.88, 0.99, 30)])]
+    rotations = Rotation.from_rotvec(np.outer(times, omega)) * Rotation.from_rotvec(
+        [0.2, -0.5, 1.0]
+    )
+    qs = _to_wxyz(rotations)
+    qs[1] = _to_wxyz(Rotation.from_rotvec(0.01 * axis) * rotations[1])
+    fit = jaxquat.fit_angular_velocity(times, qs, model=model, knots=4)
+    from_truth = jaxquat.fit_angular_velocity(times, qs, model=model, knots=4, omega0=omega)
+    assert fit.converged
+    np.testing.assert_allclose(fit.loss, from_truth.loss, rtol=1e-6)
+    assert float(np.max(fit.residual_angles)) < 0.02
+    np.testing.assert_allclose(fit.omega(times), from_truth.omega(times), atol=1e-6)
