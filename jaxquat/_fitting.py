@@ -992,7 +992,7 @@ def _strided_rates(times: Array, qs: Array, weights: Array) -> tuple[Array, ...]
     return rates, midpoints, durations, qs[index], valid
 
 
-def _equation_error_inertia(rates: Array, midpoints: Array, valid: Array) -> Array:
+def _equation_error_inertia(rates: Array, midpoints: Array, valid: Array) -> tuple[Array, Array]:
     """Principal moments (I₁ = 1) that best satisfy Euler's equations I ω̇ = (I ω) × ω on sampled ω.
 
     The equations are used integrated over windows of an eighth of the valid samples (`valid` is a
@@ -1024,9 +1024,14 @@ def _equation_error_inertia(rates: Array, midpoints: Array, valid: Array) -> Arr
     # Data that leave I undetermined (a steady spin about a principal axis, a body at rest: no
     # clear null vector, or moments of mixed signs) start from a sphere. The floor on the smallest
     # moment keeps I₁ = 1 finite: the SVD gave 1 : 2e15 : 1e8 there, and the fit went NaN.
-    determined = (singular[-1] < 0.3 * singular[-2]) & (jnp.min(inertia) > 1e-3)
+    positive = jnp.min(inertia) > 1e-3
+    determined = (singular[-1] < 0.3 * singular[-2]) & positive
+    # Also returned: the null vector itself whenever its moments are positive. An axisymmetric body
+    # in free precession leaves the equations nearly degenerate (singular values 9.7, 2.1, 0.68 for
+    # 1 : 1 : 2.5), and the sphere started the fit in a wrong minimum (`_rigid_body_start` chooses).
+    candidate = jnp.where(positive, inertia, ones)
     inertia = jnp.where(determined, inertia, ones)
-    return inertia / inertia[0]
+    return inertia / inertia[0], candidate / candidate[0]
 
 
 def fit_rigid_body(
@@ -1116,15 +1121,36 @@ def fit_rigid_body(
 def _rigid_body_start(times, observed, weights):
     """Starting (principal moments, body ω at t0) from log-differences and the equation error."""
     rates, midpoints, durations, starts, valid = _strided_rates(times, observed, weights)
-    inertia = _equation_error_inertia(rates, midpoints, valid)
+    inertia, candidate = _equation_error_inertia(rates, midpoints, valid)
     # ω₀ from the conserved world-frame angular momentum L = q (I ω) q*, averaged over every
     # baseline (q at its midpoint), carried to the first used observation. Extrapolating the first
     # rates back to t₀ instead was off by 0.1–0.4 rad/s on noisy data (up to 17 rad/s after a gap
     # of 1 ms), and long fits then converged to a wrong minimum.
     middles = multiply(starts, from_rotvec(0.5 * rates * durations[:, None]))
-    momenta = rotate_unchecked(inertia[None, :] * rates, middles)
-    momentum = jnp.sum(jnp.where(valid[:, None], momenta, 0), axis=0) / jnp.sum(valid)
-    return inertia, rotate_unchecked(momentum, conjugate(starts[0])) / inertia
+
+    def with_omega(inertia):
+        momenta = rotate_unchecked(inertia[None, :] * rates, middles)
+        momentum = jnp.sum(jnp.where(valid[:, None], momenta, 0), axis=0) / jnp.sum(valid)
+        return inertia, rotate_unchecked(momentum, conjugate(starts[0])) / inertia
+
+    # When the equation error leaves I undetermined, its null vector (if positive) competes with
+    # the sphere: the start whose motion fits the first quarter of the span better is kept (the
+    # stages of `_continue` then take it on). A determined I is both candidates at once.
+    inside = jnp.where(times <= times[0] + 0.25 * (times[-1] - times[0]), weights, 0)
+
+    def quarter_loss(start):
+        inertia, omega = start
+        params = (jnp.zeros_like(omega), jnp.log(inertia[1:] / inertia[0]), omega)
+        args = (times, observed, _reference(times, observed, weights, omega, "body"))
+        residuals = _rigid_body_residuals(params, args, "cf4", 2)
+        loss = _weighted_loss(residuals, inside)
+        return jnp.where(jnp.isfinite(loss), loss, jnp.inf)
+
+    sphere_or_determined, null_vector = with_omega(inertia), with_omega(candidate)
+    better = quarter_loss(null_vector) < quarter_loss(sphere_or_determined)
+    return jax.tree_util.tree_map(
+        lambda a, b: jnp.where(better, a, b), null_vector, sphere_or_determined
+    )
 
 
 def _continue(residual_fn, params0, args, weights, times, solver, max_steps: int):
