@@ -20,7 +20,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from functools import partial
 from typing import Any
 
@@ -33,7 +33,17 @@ from jaxtyping import Array, ArrayLike
 
 from ._algebra import conjugate, multiply
 from ._dynamics import _check_inertia as _check_rigid_inertia, simulate_rigid_body
-from ._integrate import LIE_METHODS, METHODS, _compensated_step, lie_step, scan_steps
+from ._integrate import (
+    LIE_METHODS,
+    MAGNUS_METHODS,
+    METHODS,
+    Sampled,
+    _compensated_step,
+    _depends_on_q,
+    _eps_of,
+    lie_step,
+    scan_steps,
+)
 from ._numerics import (
     as_float_array,
     check_callable,
@@ -129,15 +139,32 @@ def body_sharding(devices: Sequence[jax.Device] | None = None) -> NamedSharding:
 
     **Arguments:**
 
-    - `devices`: the devices to use; default all of them (`jax.devices()`, every host's under
-      `jax.distributed`).
+    - `devices`: the devices to use, a sequence of distinct `jax.Device`s; default all of them
+      (`jax.devices()`, every host's under `jax.distributed`).
 
     **Returns:** `NamedSharding(Mesh(devices, ("bodies",)), PartitionSpec("bodies"))`. Its `.mesh`
     shows the device layout.
+
+    **Errors:** a `ValueError` when `devices` is not a non-empty sequence of distinct `jax.Device`s.
     """
-    devices = list(jax.devices() if devices is None else devices)
+    if devices is None:
+        devices = jax.devices()
+    elif isinstance(devices, (str, bytes)) or not isinstance(devices, Iterable):
+        raise ValueError(
+            "`devices` must be a sequence of jax.Device (e.g. `jax.devices()[:2]`); "
+            f"got {type(devices).__name__}."
+        )
+    devices = list(devices)
     if not devices:
         raise ValueError("`devices` must name at least one device; got an empty list.")
+    for device in devices:
+        if not isinstance(device, jax.Device):
+            raise ValueError(
+                "`devices` must be a sequence of jax.Device (e.g. `jax.devices()[:2]`); got an "
+                f"element {device!r} of type {type(device).__name__}."
+            )
+    if len(set(devices)) != len(devices):
+        raise ValueError(f"`devices` must not name a device twice; got {devices}.")
     mesh = Mesh(np.asarray(devices, dtype=object), (_BODY_AXIS,))
     return NamedSharding(mesh, PartitionSpec(_BODY_AXIS))
 
@@ -146,14 +173,15 @@ def _time_major(sharding: NamedSharding) -> NamedSharding:
     return NamedSharding(sharding.mesh, PartitionSpec(None, _BODY_AXIS))
 
 
-@partial(jax.jit, static_argnames=("padded", "sharding"))
-def _pad_and_shard(x: Array, fill: Array, *, padded: int, sharding: NamedSharding) -> Array:
-    """Append copies of `fill` along axis 0 up to `padded` rows, laid out with `sharding`."""
-    extra = padded - x.shape[0]
+@partial(jax.jit, static_argnames=("padded", "sharding", "axis"))
+def _pad_and_shard(
+    x: Array, fill: Array, *, padded: int, sharding: NamedSharding, axis: int = 0
+) -> Array:
+    """Append copies of `fill` along `axis` up to `padded` rows, laid out with `sharding`."""
+    extra = padded - x.shape[axis]
     if extra:
-        x = jnp.concatenate(
-            [x, jnp.broadcast_to(fill, (extra,) + x.shape[1:]).astype(x.dtype)], axis=0
-        )
+        shape = x.shape[:axis] + (extra,) + x.shape[axis + 1 :]
+        x = jnp.concatenate([x, jnp.broadcast_to(fill, shape).astype(x.dtype)], axis=axis)
     return jax.lax.with_sharding_constraint(x, sharding)
 
 
@@ -188,20 +216,38 @@ def _farthest_angle(farthest: Array) -> Array:
     return safe_norm(to_rotvec(farthest))
 
 
-def _kinematic_step_fn(config, omega, dt, t0, q_start, offset):
+def _omega_source(
+    omega_fn: Callable, t0: Array, dt: Array, eps: float | None = None
+) -> tuple[Callable, Array]:
+    """The callable ω as the steps call it, `source(t, q)`, and the time `t0` of step 0 it expects.
+
+    As in `integrate`, a `Sampled` ω is looked up by the time since its first sample (the steps'
+    times are then `shift + k·dt`, shift = t0 − its t0), so float32 runs at large t pick the samples
+    exactly; a step going backwards holds the sample of the interval it crosses.
+    """
+    if isinstance(omega_fn, Sampled):
+        shift = t0 - jnp.asarray(omega_fn.t0).astype(t0.dtype)
+        return omega_fn._relative(shift, dt < 0, eps), shift
+    return omega_fn, t0
+
+
+def _kinematic_step_fn(config, omega_fn, omega, dt, t0, q_start, offset):
     """The per-step update `(k, carry) -> carry` of a kinematic ensemble at global step `offset + k`.
 
     It is `integrate`'s step (the same `lie_step`, float32 Kahan-compensated increment form and
     renormalisation every `renormalize_every` global steps), with the compensation in the carry, so a
-    run cut into chunks is bit-for-bit the run in one piece.
+    run cut into chunks is bit-for-bit the run in one piece. `omega_fn` is the callable ω (or `None`
+    for the constant `omega`); its output is broadcast to the `(bodies, 3)` of the state.
     """
     method, frame = config["method"], config["frame"]
-    omega_fn = config["omega_fn"]
-    source = omega_fn if omega_fn is not None else (lambda t, q: omega)
     renormalize_every = config["renormalize_every"]
+    if omega_fn is None:
+        source = lambda t, q: omega  # noqa: E731
+    else:
+        source, t0 = _omega_source(omega_fn, t0, dt, config["time_eps"])
 
     def field(t, q, x):
-        return source(t, q), None
+        return jnp.broadcast_to(source(t, q), q.shape[:-1] + (3,)), None
 
     def step_fn(k, carry):
         q, c, stats = carry
@@ -223,9 +269,8 @@ def _kinematic_step_fn(config, omega, dt, t0, q_start, offset):
     return step_fn
 
 
-def _dynamic_step_fn(config, dt, t0, q_start, offset):
+def _dynamic_step_fn(config, torque, dt, t0, q_start, offset):
     """The per-step update of a rigid-body ensemble (state in the body frame), via `simulate_rigid_body`."""
-    torque = config["torque"]
     if torque is not None and config["frame"] == "world":
         user_torque = torque
 
@@ -256,15 +301,21 @@ def _dynamic_step_fn(config, dt, t0, q_start, offset):
 
 
 @partial(jax.jit, static_argnames=("n_blocks", "block", "tail", "config"))
-def _run_chunk(state, stats, q_start, dt, t0, start, *, n_blocks, block, tail, config):
+def _run_chunk(state, stats, q_start, dt, t0, start, params, *, n_blocks, block, tail, config):
     """Steps `start … start + n_blocks·block + tail` of the ensemble; saves the state after each block.
 
     Step k is at time `t0 + k·dt` with the integer global step index k, and everything a step needs is
-    in the carry, so the result does not depend on how the run is cut into chunks.
+    in the carry, so the result does not depend on how the run is cut into chunks. `params` holds the
+    arrays of the callables ω and torque (dynamic: new values do not recompile), `config` the rest of
+    them (`eqx.partition`).
     """
     config = dict(config)
     dynamic = config["dynamic"]
     sharding = config["sharding"]
+    omega_fn, torque = (
+        None if static is None else eqx.combine(arrays, static)
+        for arrays, static in zip(params, (config["omega_fn"], config["torque"]), strict=True)
+    )
 
     def constrain(tree):
         return jax.tree_util.tree_map(lambda x: jax.lax.with_sharding_constraint(x, sharding), tree)
@@ -272,11 +323,11 @@ def _run_chunk(state, stats, q_start, dt, t0, start, *, n_blocks, block, tail, c
     def advance(state, stats, offset, n):
         if dynamic:
             q, omega_body, inertia = state
-            step_fn = _dynamic_step_fn(config, dt, t0, q_start, offset)
+            step_fn = _dynamic_step_fn(config, torque, dt, t0, q_start, offset)
             carry = (q, omega_body, inertia, stats)
         else:
             q, c, omega = state
-            step_fn = _kinematic_step_fn(config, omega, dt, t0, q_start, offset)
+            step_fn = _kinematic_step_fn(config, omega_fn, omega, dt, t0, q_start, offset)
             carry = (q, c, stats)
         carry, _ = scan_steps(
             step_fn, carry, n, save="final", checkpoint=False, unroll=config["unroll"]
@@ -343,17 +394,37 @@ class _StateWriter:
         self._write_index()
 
     def _remove_previous(self, index_path):
+        """Remove the data files named by the index of a previous run in `path` (only plain `.npy`
+        names inside it). An index that is not JSON, not a jaxquat ensemble's, or whose `records`
+        (a list of tables, each with a table of `files`) or `final` (a table) are malformed is a
+        `ValueError` naming the file, and nothing is removed."""
         try:
-            with open(index_path) as f:
+            with open(index_path, encoding="utf-8") as f:
                 old = json.load(f)
-        except (OSError, ValueError) as e:
-            raise ValueError(f"`path` {self.path!r} holds an unreadable index.json ({e}).") from e
-        if old.get("format") != _FORMAT:
+        except (OSError, ValueError, RecursionError) as e:
+            raise ValueError(
+                f"`path` {self.path!r} holds an unreadable index.json ({type(e).__name__}: {e})."
+            ) from e
+        if not isinstance(old, dict) or old.get("format") != _FORMAT:
             raise ValueError(
                 f"`path` {self.path!r} holds an index.json that is not a jaxquat ensemble."
             )
-        names = [n for r in old.get("records", []) for n in r.get("files", {}).values()]
-        names += list(old.get("final", {}).values())
+        records, final = old.get("records", []), old.get("final", {})
+        if not isinstance(records, list) or not all(
+            isinstance(r, dict) and isinstance(r.get("files", {}), dict) for r in records
+        ):
+            problem = f"records must be a list of {{steps, files}} tables, got {records!r}"
+        elif not isinstance(final, dict):
+            problem = f"final must be a table of files, got {final!r}"
+        else:
+            problem = None
+        if problem is not None:
+            raise ValueError(
+                f"`path` {self.path!r} holds a malformed jaxquat ensemble index.json ({problem:.200}); "
+                "refusing to write into it."
+            )
+        names = [n for r in records for n in r.get("files", {}).values()]
+        names += list(final.values())
         for name in names:
             if _plain_npy_name(name) and os.path.isfile(os.path.join(self.path, name)):
                 os.remove(os.path.join(self.path, name))
@@ -773,6 +844,60 @@ def _check_inertia(inertia: ArrayLike) -> tuple[Array, tuple[int, ...]]:
     return _check_rigid_inertia(inertia), batch
 
 
+def _check_omega_fn(omega_fn: Callable, method: str, t0: Array, dt: Array, q: Array) -> None:
+    """Check a callable ω as `integrate` does, on the ensemble's state `q` (bodies, 4): it must return
+    `(..., 3)` broadcasting to (bodies, 3), and not depend on q for a Magnus method."""
+    source, t0 = _omega_source(omega_fn, t0, dt)
+
+    def omega(t, q):
+        return as_float_array(source(t, q), "omega(t, q)")
+
+    shape = tuple(getattr(jax.eval_shape(omega, t0, q), "shape", ()))
+    if len(shape) == 0 or shape[-1] != 3:
+        raise ValueError(f"`omega(t, q)` must return shape (..., 3); got shape {shape}.")
+    bodies = q.shape[:-1]
+    try:
+        fits = np.broadcast_shapes(shape[:-1], bodies) == bodies
+    except ValueError:
+        fits = False
+    if not fits:
+        raise ValueError(
+            f"`omega(t, q)` is called on all bodies at once, flattened and padded to a multiple of "
+            f"the device count (q of shape {tuple(q.shape)}), and must act element-wise: return "
+            f"shape (..., 3) broadcasting to {bodies + (3,)}; got shape {shape} (per-body samples: "
+            "use `jaxquat.sampled`)."
+        )
+    if method in MAGNUS_METHODS and _depends_on_q(omega, t0, q):
+        raise ValueError(
+            f"`omega` depends on q, but `method`='{method}' needs a q-independent angular velocity "
+            "ω(t) (it is evaluated at the Gauss points with q frozen); use 'cf4' or 'midpoint'."
+        )
+
+
+def _split_callable(fn: Callable | None, name: str, sharding: NamedSharding) -> tuple[Any, Any]:
+    """`eqx.partition(fn, eqx.is_array)`, the arrays placed with `sharding` unless already laid out
+    on its mesh: the arrays go to the compiled chunk as arguments, the rest as a static argument,
+    which must be hashable (a `ValueError` naming `name` otherwise)."""
+    if fn is None:
+        return None, None
+    arrays, static = eqx.partition(fn, eqx.is_array)
+    try:
+        hash(static)
+    except TypeError as e:
+        raise ValueError(
+            f"`{name}` must be hashable apart from its arrays (a function, or an equinox.Module "
+            f"whose other fields are hashable); {e}."
+        ) from None
+
+    def place(x):
+        current = getattr(x, "sharding", None)
+        if isinstance(current, NamedSharding) and current.mesh == sharding.mesh:
+            return x
+        return jax.device_put(x, sharding)
+
+    return jax.tree_util.tree_map(place, arrays), static
+
+
 def _default_chunk(num_steps: int, num_bodies: int, save_every: int | None) -> int:
     chunk = max(1, _BODY_STEPS_PER_CHUNK // max(num_bodies, 1))
     chunk = min(chunk, max(num_steps, 1))
@@ -824,7 +949,12 @@ def simulate_ensemble(
 
     - `q0`: initial orientations `(..., 4)` (unit).
     - `omega`: angular velocities `(..., 3)` in rad/s (leading axes broadcast with `q0`), or for a
-      kinematic ensemble a callable `omega(t, q) -> (..., 3)`.
+      kinematic ensemble a callable `omega(t, q) -> (..., 3)` (a function or an `equinox.Module`),
+      called on all bodies at once, flattened and padded, `q` of shape `(padded bodies, 4)`: it must
+      act element-wise (return `(3,)` or `(padded bodies, 3)`); or `jaxquat.sampled(omegas, dt)`
+      with samples `(T, ..., 3)` whose leading axes broadcast with `q0` (laid out over the bodies).
+      The arrays of a callable ω or torque are arguments of the compiled chunks, replicated over the
+      devices: new values (e.g. trained parameters) do not recompile.
     - `dt`: the time step (a scalar). `num_steps`: the number of steps, 0 … 2³¹ − 1.
     - `inertia`: `None` (kinematic), or principal moments `(3,)` / matrices `(3, 3)`, shared or per
       body `(..., 3)` / `(..., 3, 3)`.
@@ -846,6 +976,13 @@ def simulate_ensemble(
       `KeyboardInterrupt`, stops the run and leaves `path` readable with the completed chunks).
 
     **Returns:** an `EnsembleResult`.
+
+    **Errors:** a `ValueError` naming the argument for a bad `q0`, `omega`, `dt`, `t0`, `num_steps`,
+    `inertia`, `torque`, `frame`, `method`, `save_every`, `chunk_size`, `statistics`, `progress`,
+    `path` (not a str or os.PathLike; a file; a non-empty directory that is not a jaxquat ensemble,
+    or one whose index.json is unreadable or malformed) or `devices` (not a non-empty sequence of
+    distinct `jax.Device`s); for an `omega(t, q)` of the wrong shape; and, as in `integrate`, for a
+    q-dependent `omega` with a Magnus method.
 
     **Example:**
     ```python
@@ -875,6 +1012,16 @@ def simulate_ensemble(
         raise ValueError("`torque` needs a rigid-body ensemble: pass `inertia` too.")
     if torque is not None:
         check_callable(torque, "torque", "torque(t, q, omega)", 3)
+    if path is not None:
+        if not isinstance(path, (str, os.PathLike)):
+            raise ValueError(
+                f"`path` must be a directory name (str or os.PathLike); got {type(path).__name__}."
+            )
+        path = os.fspath(path)
+        if not isinstance(path, str):  # a bytes path
+            path = os.fsdecode(path)
+        if not path:
+            raise ValueError("`path` must name a directory; got ''.")
 
     q0 = check_trailing(q0, 4, "q0")
     omega_fn = None
@@ -891,6 +1038,15 @@ def simulate_ensemble(
     # with a float64 NumPy inertia or ω stay float32).
     dtype = q0.dtype
     shapes = [q0.shape[:-1], omega.shape[:-1]]
+    if isinstance(omega_fn, Sampled):
+        # Per-body samples (T, ..., 3) join the batch (laid out over the bodies below).
+        samples = as_float_array(omega_fn.omegas, "omegas")
+        if samples.ndim < 2 or samples.shape[-1] != 3:
+            raise ValueError(
+                "the samples of a `jaxquat.sampled` `omega` must have shape (T, ..., 3); got "
+                f"shape {tuple(samples.shape)}."
+            )
+        shapes[1] = samples.shape[1:-1]
     if dynamic:
         inertia, inertia_batch = _check_inertia(inertia)
         shapes.append(inertia_batch)
@@ -927,6 +1083,30 @@ def simulate_ensemble(
 
     q_start = place(q0, (4,), [1.0, 0.0, 0.0, 0.0])
     omega_start = place(omega, (3,), [0.0, 0.0, 0.0])
+    dt_device = jnp.asarray(dt_array, time_dtype)
+    t0_device = jnp.asarray(t0, time_dtype)
+    replicated = NamedSharding(sharding.mesh, PartitionSpec())
+    time_eps = None
+    if isinstance(omega_fn, Sampled):
+        # The samples of each body, time-major (T, bodies, 3), padded and sharded as the bodies.
+        count = samples.shape[0]
+        # (T, *sample batch, 3) against the bodies' batch: aligned from the right, never the time axis.
+        missing = len(batch) - (samples.ndim - 2)
+        rows = samples.astype(dtype).reshape((count,) + (1,) * missing + samples.shape[1:])
+        rows = jnp.broadcast_to(rows, (count,) + batch + (3,))
+        rows = _pad_and_shard(
+            rows.reshape((count, num_bodies, 3)),
+            jnp.zeros((3,), dtype),
+            padded=padded,
+            sharding=_time_major(sharding),
+            axis=1,
+        )
+        grid = (jnp.asarray(omega_fn.dt), jnp.asarray(omega_fn.t0))
+        omega_fn = Sampled(rows, *(jax.device_put(x, replicated) for x in grid))
+        # Lookups allow the round-off of the coarsest time given, as in `integrate` (`Sampled._index`).
+        time_eps = max(_eps_of(x) for x in (dt_array, jnp.asarray(t0), *grid))
+    if omega_fn is not None:
+        _check_omega_fn(omega_fn, method, t0_device, dt_device, q_start)
     if dynamic:
         if inertia_batch == ():  # one inertia for all bodies: replicated, not sharded
             replicated = NamedSharding(sharding.mesh, PartitionSpec())
@@ -959,12 +1139,18 @@ def simulate_ensemble(
         chunk_size = save_every * max(1, -(-chunk_size // save_every))
     block = save_every or chunk_size
 
+    # The callables' arrays are dynamic arguments of the compiled chunk, replicated over the devices
+    # (new values, e.g. trained parameters, do not recompile); the rest of them is static.
+    omega_params, omega_static = _split_callable(omega_fn, "omega", replicated)
+    torque_params, torque_static = _split_callable(torque, "torque", replicated)
+    params = (omega_params, torque_params)
     config = dict(
         dynamic=dynamic,
         frame=frame,
         method=method,
-        omega_fn=omega_fn,
-        torque=torque,
+        omega_fn=omega_static,
+        time_eps=time_eps,
+        torque=torque_static,
         save=save_every is not None,
         sharding=sharding,
         compensated=compensated,
@@ -972,8 +1158,6 @@ def simulate_ensemble(
         unroll=_UNROLL,
     )
     config = tuple(sorted(config.items()))
-    dt_device = jnp.asarray(dt_array, time_dtype)
-    t0_device = jnp.asarray(t0, time_dtype)
 
     saved_steps = list(range(0, num_steps + 1, save_every)) if save_every else []
     times = float(t0) + float(dt) * np.asarray(saved_steps, np.float64) if save_every else None
@@ -1043,6 +1227,7 @@ def simulate_ensemble(
                 dt_device,
                 t0_device,
                 jnp.asarray(start, jnp.int32),
+                params,
                 n_blocks=n_blocks,
                 block=block,
                 tail=tail,
@@ -1068,10 +1253,9 @@ def simulate_ensemble(
     if dynamic:
         final_omega = state[1] if frame == "body" else _to_world(state[1], final)
     elif omega_fn is not None:
-        t_end = t0_device + jnp.asarray(num_steps, time_dtype) * dt_device
-        final_omega = jnp.broadcast_to(omega_fn(t_end, final), final.shape[:-1] + (3,)).astype(
-            dtype
-        )
+        source, t_start = _omega_source(omega_fn, t0_device, dt_device, time_eps)
+        t_end = t_start + jnp.asarray(num_steps, time_dtype) * dt_device
+        final_omega = jnp.broadcast_to(source(t_end, final), final.shape[:-1] + (3,)).astype(dtype)
     else:
         final_omega = omega_start
     angle_from_start = _angle_between(q_start, final)

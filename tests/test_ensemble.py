@@ -6,14 +6,18 @@ import subprocess
 import sys
 import textwrap
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from helpers import assert_quat_close, random_unit
+from scipy.spatial.transform import Rotation
 
 import jaxquat
 from jaxquat import load_ensemble, simulate_ensemble
+from jaxquat._cli import main
+from jaxquat._ensemble import _run_chunk
 
 
 def _ensemble(getkey, n, dtype=jnp.float64, scale=1.0):
@@ -94,6 +98,103 @@ def test_time_dependent_omega_chunked_equals_unchunked_and_integrate(getkey, met
         np.testing.assert_array_equal(getattr(whole, field), getattr(pieces, field), err_msg=field)
     reference = jaxquat.integrate(q0, omega, 0.05, 48, method=method, t0=0.25, save_every=8)
     np.testing.assert_allclose(whole.saved, reference, atol=1e-13)
+
+
+@pytest.mark.parametrize("method", ["magnus4", "magnus6", "magnus8"])
+def test_magnus_refuses_a_q_dependent_omega_as_integrate(method):
+    # The Magnus methods freeze q at the Gauss points: a q-dependent ω silently ran at first order.
+    q0 = jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (2, 1))
+
+    def omega(t, q):
+        return jnp.stack(
+            [jnp.sin(t) + q[..., 1], jnp.cos(3 * t) + 0 * q[..., 0], 0.5 + 0 * q[..., 0]], -1
+        )
+
+    with pytest.raises(ValueError) as expected:
+        jaxquat.integrate(q0, omega, 0.05, 30, method=method, save="final")
+    with pytest.raises(ValueError, match="depends on q") as got:
+        simulate_ensemble(q0, omega, 0.05, 30, method=method)
+    assert str(got.value) == str(expected.value)
+    # A q-independent ω (using only q's shape) is accepted.
+    spin = lambda t, q: jnp.broadcast_to(jnp.cos(t), q.shape[:-1] + (3,))  # noqa: E731
+    result = simulate_ensemble(q0, spin, 0.05, 4, method=method)
+    np.testing.assert_allclose(
+        result.final, jaxquat.integrate(q0, spin, 0.05, 4, method=method, save="final"), atol=1e-14
+    )
+
+
+class _Spin(eqx.Module):
+    """A trainable angular velocity ω(t) = sin(t)·w, shared by all bodies."""
+
+    w: jax.Array
+
+    def __call__(self, t, q):
+        return jnp.broadcast_to(jnp.sin(t) * self.w, q.shape[:-1] + (3,))
+
+
+class _Drag(eqx.Module):
+    """A trainable torque τ = −c·ω."""
+
+    c: jax.Array
+
+    def __call__(self, t, q, omega):
+        return -self.c * omega
+
+
+def test_callables_carrying_arrays_match_integrate_and_do_not_recompile(getkey):
+    # `jaxquat.sampled` and equinox.Module callables (arrays inside) once failed with JAX's
+    # "Non-hashable static arguments"; their arrays are now arguments of the compiled chunk.
+    q0 = random_unit(getkey(), (2, 3))
+    samples = jax.random.normal(getkey(), (12, 2, 3, 3))  # per-body samples, laid out over bodies
+    for method in ("euler", "cf4"):
+        omega = jaxquat.sampled(samples, 0.1, t0=0.05)
+        result = simulate_ensemble(q0, omega, 0.1, 10, method=method, t0=0.05, chunk_size=4)
+        reference = jaxquat.integrate(q0, omega, 0.1, 10, method=method, t0=0.05, save="final")
+        assert result.final.shape == (2, 3, 4)
+        np.testing.assert_allclose(result.final, reference, atol=1e-13, err_msg=method)
+    np.testing.assert_array_equal(result.final_omega, samples[10])  # ω at t0 + 10·dt
+    spin = _Spin(jnp.array([0.3, -0.2, 1.0]))
+    result = simulate_ensemble(q0, spin, 0.1, 10, method="cf4", save_every=5)
+    reference = jaxquat.integrate(q0, spin, 0.1, 10, method="cf4", save_every=5)
+    np.testing.assert_allclose(result.saved, reference, atol=1e-13)
+    # New parameter values reuse the compiled chunk.
+    compiled = _run_chunk._cache_size()
+    again = simulate_ensemble(
+        q0, _Spin(jnp.array([1.0, 0.5, -0.3])), 0.1, 10, method="cf4", save_every=5
+    )
+    assert _run_chunk._cache_size() == compiled
+    reference = jaxquat.integrate(
+        q0, _Spin(jnp.array([1.0, 0.5, -0.3])), 0.1, 10, method="cf4", save_every=5
+    )
+    np.testing.assert_allclose(again.saved, reference, atol=1e-13)
+    # A torque given as a Module, against `simulate_rigid_body`.
+    omega0 = jax.random.normal(getkey(), (2, 3, 3))
+    inertia = jnp.array([1.0, 2.0, 3.5])
+    for frame in ("body", "world"):
+        drag = _Drag(jnp.asarray(0.4))
+        result = simulate_ensemble(q0, omega0, 0.05, 20, inertia=inertia, torque=drag, frame=frame)
+        q_ref, w_ref = jaxquat.simulate_rigid_body(
+            q0, omega0, inertia, 0.05, 20, torque=drag, frame=frame, save="final"
+        )
+        np.testing.assert_allclose(result.final, q_ref, atol=1e-13, err_msg=frame)
+        np.testing.assert_allclose(result.final_omega, w_ref, atol=1e-13, err_msg=frame)
+
+
+def test_sampled_grid_within_round_off_is_the_grid_as_in_integrate(getkey):
+    """A float32 Δt of 0.7 (0.699999988) against samples every float64 0.7: as `integrate`, the
+    ensemble holds sample k on step k (by time alone, its Euler steps started 2e-8·k samples short of
+    each boundary and read sample k − 1). Reference: SciPy's composition of the steps' rotations."""
+    steps = 6
+    omegas = jax.random.normal(getkey(), (steps, 3))
+    dt32 = np.float32(0.7)
+    rotation = Rotation.identity()
+    for k in range(steps):
+        rotation = Rotation.from_rotvec(np.asarray(omegas[k]) * float(dt32)) * rotation
+    expected = jaxquat.from_xyzw(jnp.asarray(rotation.as_quat()))
+    result = simulate_ensemble(jaxquat.identity((1,)), jaxquat.sampled(omegas, 0.7), dt32, steps)
+    assert _angle(result.final[0], expected) <= 1e-6
+    integrated = jaxquat.integrate(jaxquat.identity(), jaxquat.sampled(omegas, 0.7), dt32, steps)
+    assert _angle(integrated[-1], expected) <= 1e-6
 
 
 def test_float32_in_float32_out_and_chunking_is_exact(getkey):
@@ -237,6 +338,14 @@ def test_progress_is_off_by_default_and_a_bar_on_request(getkey, capsys):
         (dict(omega=np.ones((4, 3)), q0=np.ones((3, 4))), "broadcast"),
         (dict(progress="yes"), "progress"),
         (dict(devices=[]), "devices"),
+        (dict(devices=["cpu"]), "devices.*jax.Device"),
+        (dict(devices=5), "devices.*jax.Device"),
+        (dict(path=5), "path.*str or os.PathLike"),
+        (dict(omega=lambda t, q: q), r"`omega\(t, q\)` must return shape \(\.\.\., 3\)"),
+        (
+            dict(q0=np.ones((3, 4)) / 2, omega=lambda t, q: jnp.ones((2, 3))),
+            r"omega\(t, q\).*element-wise",
+        ),
     ],
 )
 def test_bad_arguments_raise_value_errors_naming_them(kwargs, name):
@@ -263,6 +372,35 @@ def test_bad_paths(tmp_path):
         load_ensemble(tmp_path / "missing")
     with pytest.raises(ValueError, match="not a directory"):
         load_ensemble(tmp_path / "file")
+
+
+@pytest.mark.parametrize(
+    "index",
+    [
+        [1],
+        {"format": "jaxquat-ensemble", "final": []},
+        {"format": "jaxquat-ensemble", "records": [1]},
+        {"format": "jaxquat-ensemble", "records": {"files": "x.npy"}},
+        {"format": "jaxquat-ensemble", "records": [{"files": ["states_000000.npy"]}]},
+    ],
+)
+def test_a_malformed_index_in_path_is_a_value_error(tmp_path, capsys, index):
+    # The writer removes the files a previous run's index names: a JSON-valid but malformed index was
+    # an AttributeError (the CLI: "internal error", exit 1), now a ValueError naming the file.
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "index.json").write_text(json.dumps(index))
+    (run / "states_000000.npy").write_bytes(b"keep")
+    args = (np.array([1.0, 0, 0, 0]), np.zeros(3), 0.1, 2)
+    with pytest.raises(ValueError, match=r"`path` '.*run'.*index\.json"):
+        simulate_ensemble(*args, path=run, save_every=1)
+    assert (run / "states_000000.npy").read_bytes() == b"keep"
+    status = main(
+        ["simulate", "--bodies", "3", "--steps", "5", "--output", str(run), "--no-progress"]
+    )
+    err = capsys.readouterr().err
+    assert status == 2 and err.count("\n") == 1 and "index.json" in err, err
+    assert "internal error" not in err
 
 
 def test_load_ensemble_rejects_malformed_files(tmp_path):
@@ -353,6 +491,67 @@ def test_bodies_are_sharded_over_four_devices_and_match_one_device():
     for n in ("1000", "1001"):
         assert out[n]["final"] <= 1e-12 and out[n]["saved"] <= 1e-12 and out[n]["total"] <= 1e-12
     assert out["1001"]["shape"] == [1001, 4]
+
+
+_SHARDED_CALLABLES = textwrap.dedent(
+    """
+    import json, equinox as eqx, jax, jax.numpy as jnp, numpy as np
+    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_numpy_rank_promotion", "raise")
+    import jaxquat
+    assert jax.device_count() == 4, jax.devices()
+    class Spin(eqx.Module):
+        w: jax.Array
+        def __call__(self, t, q):
+            return jnp.broadcast_to(jnp.sin(t) * self.w, q.shape[:-1] + (3,))
+    class Drag(eqx.Module):
+        c: jax.Array
+        def __call__(self, t, q, omega):
+            return -self.c * omega
+    q0 = jaxquat.random(jax.random.key(0), (2, 3))  # 6 bodies, padded to 8 on 4 devices
+    samples = jax.random.normal(jax.random.key(1), (12, 2, 3, 3))
+    omega0 = jax.random.normal(jax.random.key(2), (2, 3, 3))
+    inertia = jnp.array([1.0, 2.0, 3.5])
+    cases = dict(
+        sampled=(jaxquat.sampled(samples, 0.1), dict(method="cf4")),
+        module=(Spin(jnp.array([0.3, -0.2, 1.0])), dict(method="midpoint")),
+        torque=(omega0, dict(inertia=inertia, torque=Drag(jnp.asarray(0.4)))),
+    )
+    out = {}
+    for name, (omega, kw) in cases.items():
+        sharded = jaxquat.simulate_ensemble(q0, omega, 0.1, 10, chunk_size=4, **kw)
+        single = jaxquat.simulate_ensemble(q0, omega, 0.1, 10, devices=jax.devices()[:1], **kw)
+        if "inertia" in kw:
+            reference, _ = jaxquat.simulate_rigid_body(q0, omega, inertia, 0.1, 10, torque=kw["torque"], save="final")
+        else:
+            reference = jaxquat.integrate(q0, omega, 0.1, 10, save="final", **kw)
+        out[name] = dict(
+            devices=len(sharded.final.sharding.device_set) if sharded.final.sharding.device_set else 0,
+            single=float(np.max(np.abs(np.asarray(sharded.final) - np.asarray(single.final)))),
+            reference=float(np.max(np.abs(np.asarray(sharded.final) - np.asarray(reference)))),
+            shape=list(sharded.final.shape),
+        )
+    print(json.dumps(out))
+    """
+)
+
+
+def test_callables_carrying_arrays_run_on_four_devices():
+    env = dict(
+        os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", _SHARDED_CALLABLES],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    for name, case in out.items():
+        assert case["shape"] == [2, 3, 4], name
+        assert case["single"] <= 1e-13 and case["reference"] <= 1e-13, (name, case)
 
 
 _MEMORY = textwrap.dedent(
