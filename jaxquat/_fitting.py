@@ -277,6 +277,7 @@ def _unwrap(turns: Array, durations: Array, valid: Array) -> Array:
     # derivative flows through it).
     index = jnp.argmax(valid)
     plain = lax.stop_gradient(jnp.where(valid[:, None], rates, 0))
+    plain = plain.astype(jnp.promote_types(plain.dtype, jnp.float32))  # (no bfloat16 eigh)
     axis = jnp.linalg.eigh(plain.T @ plain)[1][:, -1]
     along = plain @ axis
     majority = jnp.sum(jnp.sign(along))

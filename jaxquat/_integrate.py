@@ -665,7 +665,7 @@ def _eps_of(x) -> float:
 
 def _check_finite(x: Array, name: str) -> Array:
     """`x`, after a ValueError if it is concrete and not finite (a NaN t0 once picked sample 0)."""
-    if not is_tracer(x) and not bool(jnp.isfinite(x)):
+    if not is_tracer(x) and not np.isfinite(np.asarray(x)):  # (NumPy: no tracer inside a jit)
         raise ValueError(f"`{name}` must be finite; got {float(x)}.")
     return x
 
@@ -835,6 +835,9 @@ def integrate(
         omega = Sampled(omega.omegas, _check_scalar(omega.dt, "dt"), _check_scalar(omega.t0, "t0"))
         # Sample lookups by time allow the round-off of the coarsest time given (see `Sampled._index`).
         time_eps = max(_eps_of(x) for x in (dt, t0, omega.dt, omega.t0))
+        # A traced non-finite t0 (unchecked) would clip to the first or last sample and give a
+        # plausible rotation: the run is NaN instead, as a non-finite input is everywhere else.
+        q0 = jnp.where(jnp.isfinite(t0 - omega.t0), q0, jnp.nan)
     # Lie–Euler with a constant or sampled ω takes the restructured loop of `_fastpath` (issue 8).
     fast = integrate_fast(
         q0,

@@ -414,6 +414,7 @@ def test_simulate_into_an_unwritable_output_is_one_line_error(tmp_path, capsys):
 # printed a traceback through runpy.
 _SIGINT_ON_IMPORTING_JAX = """
 import os, signal, sys
+signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal (xdist ignores SIGINT)
 class SignalOnJax:
     def find_spec(self, name, path=None, target=None):
         if name == "jax":

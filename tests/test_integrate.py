@@ -804,6 +804,15 @@ def test_non_finite_dt_or_t0_is_a_value_error(dt, t0):
     if name == "t0":
         with pytest.raises(ValueError, match="`t0`.*must be finite"):
             jq.sampled(omegas, 0.1, t0=t0)
+        # Traced, nothing is checked (DESIGN: non-finite inputs propagate as NaN), but the samples'
+        # lookup must not turn the NaN into a plausible rotation.
+        for method in ("euler", "midpoint"):
+            q = jax.jit(
+                lambda t0, m=method: jq.integrate(
+                    jq.identity(), jq.sampled(omegas, 0.1), 0.1, 5, t0=t0, method=m
+                )
+            )(t0)
+            assert np.all(np.isnan(np.asarray(q[1:])))
 
 
 @pytest.mark.parametrize("method", ["euler", "midpoint", "magnus4"])
