@@ -497,15 +497,7 @@ def load_ensemble(path: str | os.PathLike) -> dict[str, Any]:
     (an index from another format version, a complete run lacking states or final arrays, saved
     times that overflow), is a `ValueError` naming the file and the problem.
     """
-    if not isinstance(path, (str, os.PathLike)):
-        raise ValueError(
-            f"`path` must be a directory name (str or os.PathLike); got {type(path).__name__}."
-        )
-    path = os.fspath(path)
-    if not isinstance(path, str):  # a bytes path
-        path = os.fsdecode(path)
-    if not path:
-        raise ValueError("`path` must name a directory; got ''.")
+    path = _check_path(path)
     if not os.path.exists(path):
         raise ValueError(f"`path` {path!r} does not exist.")
     if not os.path.isdir(path):
@@ -898,6 +890,21 @@ def _split_callable(fn: Callable | None, name: str, sharding: NamedSharding) -> 
     return jax.tree_util.tree_map(place, arrays), static
 
 
+def _check_path(path) -> str:
+    """`path` as a `str` (a bytes path decoded); a `ValueError` unless it is a non-empty str or
+    os.PathLike."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(
+            f"`path` must be a directory name (str or os.PathLike); got {type(path).__name__}."
+        )
+    path = os.fspath(path)
+    if not isinstance(path, str):  # a bytes path
+        path = os.fsdecode(path)
+    if not path:
+        raise ValueError("`path` must name a directory; got ''.")
+    return path
+
+
 def _default_chunk(num_steps: int, num_bodies: int, save_every: int | None) -> int:
     chunk = max(1, _BODY_STEPS_PER_CHUNK // max(num_bodies, 1))
     chunk = min(chunk, max(num_steps, 1))
@@ -1013,15 +1020,7 @@ def simulate_ensemble(
     if torque is not None:
         check_callable(torque, "torque", "torque(t, q, omega)", 3)
     if path is not None:
-        if not isinstance(path, (str, os.PathLike)):
-            raise ValueError(
-                f"`path` must be a directory name (str or os.PathLike); got {type(path).__name__}."
-            )
-        path = os.fspath(path)
-        if not isinstance(path, str):  # a bytes path
-            path = os.fsdecode(path)
-        if not path:
-            raise ValueError("`path` must name a directory; got ''.")
+        path = _check_path(path)
 
     q0 = check_trailing(q0, 4, "q0")
     omega_fn = None

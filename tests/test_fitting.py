@@ -345,7 +345,7 @@ def test_derivative_at_a_zero_weight_is_finite_and_correct(weighted_case, model)
 def test_reverse_mode_through_the_automatic_start_is_not_nan(weighted_case):
     """Without `omega0` the fit starts from log-differences of the observations; the norm of a zero
     turn there (the bridged interval of a weight-0 observation) made jacrev NaN in the times and the
-    observations, while jacfwd was finite. Both must agree, and with central differences."""
+    observations, while jacfwd was finite. Reverse mode must match central differences."""
     c = weighted_case
     times, qs, w = (jnp.asarray(c[k]) for k in ("times", "qs", "weights"))
 
@@ -353,21 +353,22 @@ def test_reverse_mode_through_the_automatic_start_is_not_nan(weighted_case):
         return jaxquat.fit_angular_velocity(times, qs, weights=w).omega
 
     reverse = jax.jacrev(omega_hat, argnums=(0, 1))(times, qs)
-    forward = jax.jacfwd(omega_hat, argnums=(0, 1))(times, qs)
-    for r, f in zip(reverse, forward, strict=True):
-        assert np.all(np.isfinite(np.asarray(r)))
-        np.testing.assert_allclose(r, f, rtol=1e-8, atol=1e-12)
+    assert all(np.all(np.isfinite(np.asarray(r))) for r in reverse)
     eps = 1e-6
     for k in (0, 7, 8):  # the first time, an outlier's, the one after it
         step = jnp.zeros_like(times).at[k].set(eps)
         difference = (omega_hat(times + step, qs) - omega_hat(times - step, qs)) / (2 * eps)
         np.testing.assert_allclose(reverse[0][:, k], difference, rtol=1e-6, atol=1e-8)
+    for k, i in ((7, 2), (8, 0)):  # an outlier's observation, the one after it
+        step = jnp.zeros_like(qs).at[k, i].set(eps)
+        difference = (omega_hat(times, qs + step) - omega_hat(times, qs - step)) / (2 * eps)
+        np.testing.assert_allclose(reverse[1][:, k, i], difference, rtol=1e-6, atol=1e-8)
 
 
-@pytest.mark.parametrize("model", ["constant", "piecewise_linear"])
+@pytest.mark.parametrize("model", ["constant"])  # (the curve models share `_unwrap`: 20 s more)
 def test_reverse_mode_at_rest_is_not_nan(model):
-    """A body at rest (every observation the identity): all turns are exactly zero, and jacrev was NaN for every
-    model. The derivative in an observation must match central differences."""
+    """A body at rest (every observation the identity): all turns are exactly zero, and jacrev was
+    NaN for every model. The derivative in an observation must match central differences."""
     times = jnp.linspace(0.0, 5.0, 12)
     rest = jnp.tile(jaxquat.identity(), (12, 1))
     knots = None if model == "constant" else jnp.linspace(0.0, 5.0, 3)
@@ -912,12 +913,17 @@ def test_constant_fit_across_a_gap_of_more_than_half_a_turn(frame, gap):
     points the other way, and its log-difference dragged the starting ω from 10 to 9; the fit then
     converged to 8.56 rad/s with residuals of 85° rms and converged=True (a review). The other
     intervals determine ω, so the fit must recover it, with and without noise."""
-    rng = np.random.default_rng(31)
     times = np.concatenate([np.arange(30) * 0.1, 2.9 + gap + np.arange(30) * 0.1])
     omega = np.array([1.0, -2.0, 9.7])
-    omega *= 10.0 / np.linalg.norm(omega)
-    q0 = _to_wxyz(Rotation.from_rotvec([0.3, -1.1, 0.4]))
-    exact = _constant_truth(rng, times, omega, q0, frame)
+    _assert_constant_fit_recovers(
+        times, 10.0 * omega / np.linalg.norm(omega), [0.3, -1.1, 0.4], frame, 31
+    )
+
+
+def _assert_constant_fit_recovers(times, omega, rotvec0, frame, seed):
+    """Exact data to 1e-9 and noisy data to 5× the Cramér–Rao bound, q/−q mixed, converged."""
+    rng = np.random.default_rng(seed)
+    exact = _constant_truth(rng, times, omega, _to_wxyz(Rotation.from_rotvec(rotvec0)), frame)
     bound = 5 * np.sqrt(np.max(np.linalg.eigvalsh(_constant_crb(times, omega))))
     for qs, tolerance in [(exact, 1e-9), (_add_noise(rng, exact), bound)]:
         fit = jaxquat.fit_angular_velocity(times, _flip_signs(rng, qs), frame=frame)
@@ -931,18 +937,11 @@ def test_constant_fit_with_gaps_covering_most_of_the_span(frame):
     """40 intervals of 0.25 rad at 5 rad/s, then 4 gaps of 3.5–6.5 rad covering more than half the
     span: the duration-weighted median rate the start took its branches from was the gaps' (a review:
     ω 0.27 instead of 5, residuals of 3.06 rad, converged=True). The many short intervals fix ω."""
-    rng = np.random.default_rng(44)
     times = np.concatenate([np.linspace(0.0, 2.0, 41), 2.0 + np.cumsum([0.9, 1.1, 1.3, 0.7])])
     omega = np.array([0.6, -0.8, 4.9])
-    omega *= 5.0 / np.linalg.norm(omega)
-    q0 = _to_wxyz(Rotation.from_rotvec([-0.4, 0.9, 0.2]))
-    exact = _constant_truth(rng, times, omega, q0, frame)
-    bound = 5 * np.sqrt(np.max(np.linalg.eigvalsh(_constant_crb(times, omega))))
-    for qs, tolerance in [(exact, 1e-9), (_add_noise(rng, exact), bound)]:
-        fit = jaxquat.fit_angular_velocity(times, _flip_signs(rng, qs), frame=frame)
-        assert fit.converged
-        np.testing.assert_allclose(fit.omega, omega, atol=tolerance)
-        assert float(np.max(fit.residual_angles)) < max(1e-9, 5 * SIGMA)
+    _assert_constant_fit_recovers(
+        times, 5.0 * omega / np.linalg.norm(omega), [-0.4, 0.9, 0.2], frame, 44
+    )
 
 
 @pytest.mark.parametrize("model", ["piecewise_linear", "spline"])
