@@ -803,9 +803,12 @@ def _start(times, observed, weights, knots, *, model, frame):
             residuals = _constant_residuals((jnp.zeros_like(omega), omega), args, frame)
             return _weighted_loss(residuals, weights)
 
-        by_duration = through(_weighted_median(rates, durations))
-        by_count = through(_weighted_median(rates, valid.astype(rates.dtype)))
-        return jnp.where(loss(by_count) < loss(by_duration), by_count, by_duration)
+        medians = jax.vmap(lambda w: _weighted_median(rates, w))(
+            jnp.stack([durations, valid.astype(rates.dtype)])
+        )
+        starts = jax.vmap(through)(medians)  # by duration, by count
+        losses = jax.vmap(loss)(starts)  # (one copy of the model to compile)
+        return jnp.where(losses[1] < losses[0], starts[1], starts[0])
     # The curve is linear in its values: its basis functions are the curve through I_K.
     basis = AngularVelocityCurve.through(knots, jnp.eye(knots.shape[0], dtype=rates.dtype), model)
     rows = valid[:, None].astype(rates.dtype)
@@ -1147,11 +1150,11 @@ def _rigid_body_start(times, observed, weights):
         loss = _weighted_loss(residuals, inside)
         return jnp.where(jnp.isfinite(loss), loss, jnp.inf)
 
-    sphere_or_determined, null_vector = with_omega(inertia), with_omega(candidate)
-    better = quarter_loss(null_vector) < quarter_loss(sphere_or_determined)
-    return jax.tree_util.tree_map(
-        lambda a, b: jnp.where(better, a, b), null_vector, sphere_or_determined
-    )
+    # (Both candidates in one vmapped evaluation: one copy of the rigid-body model to compile.)
+    candidates = jax.vmap(with_omega)(jnp.stack([inertia, candidate]))
+    losses = jax.vmap(quarter_loss)(candidates)
+    better = losses[1] < losses[0]
+    return jax.tree_util.tree_map(lambda c: jnp.where(better, c[1], c[0]), candidates)
 
 
 def _continue(residual_fn, params0, args, weights, times, solver, max_steps: int):
