@@ -35,11 +35,10 @@ from ._algebra import conjugate, multiply
 from ._dynamics import _check_inertia as _check_rigid_inertia, simulate_rigid_body
 from ._integrate import (
     LIE_METHODS,
-    MAGNUS_METHODS,
     METHODS,
     Sampled,
+    _check_magnus_omega,
     _compensated_step,
-    _depends_on_q,
     _eps_of,
     lie_step,
     scan_steps,
@@ -859,11 +858,7 @@ def _check_omega_fn(omega_fn: Callable, method: str, t0: Array, dt: Array, q: Ar
             f"shape (..., 3) broadcasting to {bodies + (3,)}; got shape {shape} (per-body samples: "
             "use `jaxquat.sampled`)."
         )
-    if method in MAGNUS_METHODS and _depends_on_q(omega, t0, q):
-        raise ValueError(
-            f"`omega` depends on q, but `method`='{method}' needs a q-independent angular velocity "
-            "ω(t) (it is evaluated at the Gauss points with q frozen); use 'cf4' or 'midpoint'."
-        )
+    _check_magnus_omega(omega, method, t0, q)
 
 
 def _split_callable(fn: Callable | None, name: str, sharding: NamedSharding) -> tuple[Any, Any]:

@@ -797,9 +797,11 @@ def _start(times, observed, weights, knots, *, model, frame):
             # (At least two positive weights make the sum positive; a traced lane with fewer gets 0.)
             return jnp.sum(turns, axis=0) / jnp.where(total > 0, total, 1)
 
+        tau = _relative_times(times, observed.dtype)
+
         def loss(omega):
             reference = _reference(times, observed, weights, omega, frame)
-            args = (_relative_times(times, observed.dtype), observed, reference)
+            args = (tau, observed, reference)
             residuals = _constant_residuals((jnp.zeros_like(omega), omega), args, frame)
             return _weighted_loss(residuals, weights)
 

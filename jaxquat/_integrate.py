@@ -677,6 +677,16 @@ def _check_scalar(x: ArrayLike, name: str) -> Array:
     return x
 
 
+def _check_magnus_omega(omega: Callable, method: str, t, q: Array) -> None:
+    """A `ValueError` for a Magnus `method` with an `omega(t, q)` that depends on q (`integrate` and
+    `simulate_ensemble`)."""
+    if method in MAGNUS_METHODS and _depends_on_q(omega, t, q):
+        raise ValueError(
+            f"`omega` depends on q, but `method`='{method}' needs a q-independent angular velocity "
+            "ω(t) (it is evaluated at the Gauss points with q frozen); use 'cf4' or 'midpoint'."
+        )
+
+
 def _depends_on_q(omega: Callable, t, q: Array) -> bool:
     """Whether the output of `omega(t, q)` depends on q (a conservative data-flow check on its jaxpr)."""
     return _depends_on(lambda q_: omega(t, q_), q)
@@ -832,12 +842,17 @@ def integrate(
     )
     time_eps = None
     if isinstance(omega, Sampled):
-        omega = Sampled(omega.omegas, _check_scalar(omega.dt, "dt"), _check_scalar(omega.t0, "t0"))
+        omega = Sampled(
+            omega.omegas,
+            _check_scalar(omega.dt, "dt"),
+            _check_finite(_check_scalar(omega.t0, "t0"), "t0"),
+        )
         # Sample lookups by time allow the round-off of the coarsest time given (see `Sampled._index`).
         time_eps = max(_eps_of(x) for x in (dt, t0, omega.dt, omega.t0))
-        # A traced non-finite t0 (unchecked) would clip to the first or last sample and give a
-        # plausible rotation: the run is NaN instead, as a non-finite input is everywhere else.
-        q0 = jnp.where(jnp.isfinite(t0 - omega.t0), q0, jnp.nan)
+        if is_tracer(t0) or is_tracer(omega.t0):
+            # A traced non-finite t0 (unchecked) would clip to the first or last sample and give a
+            # plausible rotation: the run is NaN instead, as a non-finite input is everywhere else.
+            q0 = jnp.where(jnp.isfinite(t0 - omega.t0), q0, jnp.nan)
     # Lie–Euler with a constant or sampled ω takes the restructured loop of `_fastpath` (issue 8).
     fast = integrate_fast(
         q0,
@@ -914,11 +929,7 @@ def _integrate(
             raise ValueError(f"`omega(t, q)` must return shape (..., 3); got shape {shape}.")
         batch = _broadcast_shapes(batch, shape[:-1], "omega(t, q)", shape)
         q0 = jnp.broadcast_to(q0, batch + (4,))
-        if method in MAGNUS_METHODS and _depends_on_q(omega, t0, q0):
-            raise ValueError(
-                f"`omega` depends on q, but `method`='{method}' needs a q-independent angular velocity "
-                "ω(t) (it is evaluated at the Gauss points with q frozen); use 'cf4' or 'midpoint'."
-            )
+        _check_magnus_omega(omega, method, t0, q0)
         source = omega
         if isinstance(user_omega, Sampled):
             # Times relative to the first sample (see `Sampled._relative`): `time(k)` below.
