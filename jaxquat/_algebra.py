@@ -100,7 +100,8 @@ def inverse(q: ArrayLike) -> Array:
 
 def normalize(q: ArrayLike) -> Array:
     """q/|q|, the unit quaternion of the same rotation, for any finite q the dtype holds (|q|² is not
-    formed from q itself when it would overflow or underflow). NaN for q = 0 (nothing is invented)."""
+    formed from q itself when it would overflow or underflow). NaN for q = 0 (nothing is invented),
+    which includes a q whose components are all subnormal: XLA:CPU flushes those to zero."""
     q = check_trailing(q, 4, "q")
     return unit_vector(q)
 
@@ -143,6 +144,15 @@ def exp(q: ArrayLike) -> Array:
     scale = jnp.exp(q[..., 0])
     w = scale * cos_half(theta_sq)
     xyz = (scale * 2.0 * sinc_half(theta_sq))[..., None] * v
+    # 4|v|² overflows for |v| above ~6.7e153 (float64; ~9.2e18 in float32): there |v| itself is
+    # taken, prescaled, in the direct formula (sin|v|/|v| is then at most 1/|v|, far from the series).
+    huge = jnp.isinf(theta_sq) & jnp.all(jnp.isfinite(v), axis=-1)
+    scaled, e = prescale(jnp.where(huge[..., None], v, jnp.ones_like(v)))
+    size = power_of_two_times(jnp.sqrt(sum_squares(scaled)), e)
+    w = jnp.where(huge, scale * jnp.cos(size), w)
+    xyz = jnp.where(huge[..., None], (scale * jnp.sin(size) / size)[..., None] * v, xyz)
+    # eʷ = ∞ times a zero component is a zero component (as for complex exp(800 + 0j) = ∞ + 0j).
+    xyz = jnp.where(jnp.isinf(scale)[..., None] & (v == 0), jnp.zeros_like(xyz), xyz)
     return jnp.concatenate([w[..., None], xyz], axis=-1)
 
 
@@ -161,4 +171,10 @@ def log(q: ArrayLike) -> Array:
     s_sq = sum_squares(v)
     log_norm = 0.5 * jnp.log(s_sq + w * w) + e.astype(q.dtype) * _LN2
     xyz = atan2_over(s_sq, w)[..., None] * v
+    # For w < 0 a vector part so small beside w that |v|² underflows (|v|/|w| below ~1e-154 in
+    # float64, ~1e-19 in float32) still has a direction, and the angle atan2(|v|, w) is π: the
+    # direction is taken from v scaled on its own (atan2_over(0, w) alone would give π·v, not π·v̂).
+    lost = (w < 0) & (s_sq <= 0) & jnp.any(v != 0, axis=-1)
+    direction = unit_vector(jnp.where(lost[..., None], v, jnp.ones_like(v)))
+    xyz = jnp.where(lost[..., None], jnp.pi * direction, xyz)
     return jnp.concatenate([log_norm[..., None], xyz], axis=-1)

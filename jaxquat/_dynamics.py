@@ -25,6 +25,7 @@ from ._integrate import _check_scalar, _check_steps, lie_step, scan_steps
 from ._kinematics import rate
 from ._numerics import (
     as_float_array,
+    at_least_float32,
     broadcast_batch,
     broadcasts_to,
     check_callable,
@@ -193,12 +194,12 @@ def principal_axes(inertia: ArrayLike) -> tuple[Array, Array]:
     """
     inertia = check_matrix(inertia, "inertia")
     inertia = _check_inertia(inertia, "inertia")
-    moments, axes = jnp.linalg.eigh(inertia)
+    moments, axes = jnp.linalg.eigh(at_least_float32(inertia))  # (no half-precision eigh)
     # Make the frame right-handed by flipping the last axis where needed.
     det = jnp.linalg.det(axes)
     flip = jnp.where(det < 0, -1.0, 1.0).astype(axes.dtype)
     axes = axes.at[..., :, 2].multiply(flip[..., None])
-    return moments, from_matrix(axes)
+    return moments.astype(inertia.dtype), from_matrix(axes).astype(inertia.dtype)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -224,7 +225,7 @@ def _check_inertia(inertia: ArrayLike, name: str = "inertia") -> Array:
         raise ValueError(f"`{name}` must be finite.")
     if _is_matrix(inertia):
         scale = np.max(np.abs(values), axis=(-2, -1), keepdims=True)
-        tolerance = np.sqrt(np.finfo(np.dtype(inertia.dtype)).eps) * scale
+        tolerance = np.sqrt(float(jnp.finfo(inertia.dtype).eps)) * scale
         if np.any(np.abs(values - np.swapaxes(values, -1, -2)) > tolerance):
             raise ValueError(f"`{name}` must be a symmetric matrix.")
         moments = np.linalg.eigvalsh(0.5 * (values + np.swapaxes(values, -1, -2)))

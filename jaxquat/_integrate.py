@@ -769,7 +769,10 @@ def integrate(
 
     **Arguments:**
 
-    - `q0`: initial orientation(s), shape `(*batch, 4)`, unit.
+    - `q0`: initial orientation(s), shape `(*batch, 4)`, unit. It is not normalised for you: the
+      exponential methods carry a non-unit q0's norm until the first renormalisation (step
+      `renormalize_every`), which scales the state to |q| = 1; `"naive"` and `"rk4"` normalise
+      after the first step.
     - `omega`: angular velocity (rad/s, in `frame`): an array `(..., 3)` broadcasting with `q0`'s batch
       (constant in time); a callable `omega(t, q) -> (..., 3)` (a function, or an `equinox.Module` whose
       array fields are differentiated); or `jaxquat.sampled(omegas, dt)` for sampled data.

@@ -383,7 +383,7 @@ def safe_atan2(y: Array, x: Array) -> Array:
 
 
 @jax.custom_jvp
-def top_eigenvector(k: Array) -> Array:
+def _top_eigenvector(k: Array) -> Array:
     """The unit eigenvector of the largest eigenvalue of symmetric matrices `k` of shape `(..., n, n)`.
 
     Value from `jnp.linalg.eigh` (its sign is arbitrary; callers fix it). Derivative by first-order
@@ -397,10 +397,22 @@ def top_eigenvector(k: Array) -> Array:
     return vectors[..., :, -1]
 
 
-@top_eigenvector.defjvp
+def at_least_float32(x: Array) -> Array:
+    """`x` in float32 if its dtype is narrower (float16, bfloat16): XLA:CPU's eigh, solve and det have
+    no half-precision kernels. Differentiable (a cast)."""
+    return x.astype(jnp.promote_types(x.dtype, jnp.float32))
+
+
+def top_eigenvector(k: Array) -> Array:
+    """The unit eigenvector of the largest eigenvalue of symmetric matrices `k` (`_top_eigenvector`),
+    computed in at least float32 and returned in the dtype of `k`."""
+    return _top_eigenvector(at_least_float32(k)).astype(k.dtype)
+
+
+@_top_eigenvector.defjvp
 def _top_eigenvector_jvp(primals, tangents):
     (k,), (dk,) = primals, tangents
-    v = top_eigenvector(k)
+    v = _top_eigenvector(k)
     dk = 0.5 * (dk + jnp.swapaxes(dk, -1, -2))
     kv = jnp.einsum("...ij,...j->...i", k, v)
     lam = jnp.sum(v * kv, axis=-1)

@@ -32,7 +32,8 @@ def rotate(v: ArrayLike, q: ArrayLike, center: ArrayLike | None = None) -> Array
     """Rotate vectors `v` by the quaternion `q` about `center`: v' = q (v − c) q⁻¹ + c.
 
     `q` need not be unit: q⁻¹ = q*/|q|² is used, so only the direction of q matters (the seed's
-    `rotate(v, q, center)`; with `center=None` the origin). Any finite nonzero q the dtype holds works:
+    `rotate(v, q, center)`; with `center=None` the origin). Any finite nonzero q the dtype holds works
+    (nonzero: not all components zero or subnormal, since XLA:CPU flushes subnormal numbers to zero):
     one whose |q|² would overflow or underflow is first scaled by an exact power of two.
 
     **Arguments:**
@@ -69,10 +70,18 @@ def rotate_unchecked(v: Array, q: Array) -> Array:
     return v + scale * (w * uv + cross(u, uv))
 
 
+def _undefined(q: Array) -> Array:
+    """Where q names no rotation: q = 0 (including all-subnormal q, which XLA:CPU flushes to zero)
+    or an infinite component. The conversions to axis-angle, rotation vector and Euler angles return
+    NaN there instead of inventing an answer (normalize, to_matrix and rotate give NaN too)."""
+    return jnp.all(q == 0, axis=-1) | jnp.any(jnp.isinf(q), axis=-1)
+
+
 def from_axis_angle(axis: ArrayLike, angle: ArrayLike) -> Array:
     """The unit quaternion (cos(θ/2), sin(θ/2) n̂) of a rotation by `angle` θ about `axis` (right-hand).
 
-    `axis` need not be unit (it is normalised; a zero axis gives the identity for any finite angle).
+    `axis` need not be unit (it is normalised; a zero axis gives the identity for any finite angle, and
+    so does an all-subnormal one, which XLA:CPU flushes to zero).
     `angle` has shape `(...)` and broadcasts with the batch shape of `axis`. NaN in either gives NaN.
 
     Example: `from_axis_angle([0, 0, 2], jnp.pi / 2)` is `[0.70711, 0, 0, 0.70711]`.
@@ -97,10 +106,12 @@ def from_axis_angle(axis: ArrayLike, angle: ArrayLike) -> Array:
 def to_axis_angle(q: ArrayLike) -> tuple[Array, Array]:
     """The axis (unit, shape `(..., 3)`) and angle in [0, π] (shape `(...)`) of the rotation q.
 
-    `q` need not be unit (any finite nonzero magnitude). At the identity the axis is undefined and `(1, 0, 0)` is returned. A NaN
-    anywhere in `q` gives NaN axis and angle.
+    `q` need not be unit (any finite nonzero magnitude). At the identity the axis is undefined and
+    `(1, 0, 0)` is returned. A NaN anywhere in `q`, q = 0 or an infinite component gives NaN axis and
+    angle.
     """
     q = prescale(check_trailing(q, 4, "q"))[0]
+    undefined = _undefined(q)
     q = jnp.where(q[..., :1] < 0, -q, q)
     v = q[..., 1:]
     s = safe_norm(v)
@@ -112,7 +123,10 @@ def to_axis_angle(q: ArrayLike) -> tuple[Array, Array]:
     axis = jnp.where(has_axis[..., None], v / safe_s, default)
     # A NaN w leaves v/|v| finite but its sign (the w ≥ 0 choice) undecided: report NaN, not a guess.
     axis = jnp.where(jnp.isnan(angle)[..., None], jnp.nan, axis)
-    return axis, angle
+    return (
+        jnp.where(undefined[..., None], jnp.nan, axis),
+        jnp.where(undefined, jnp.nan, angle),
+    )
 
 
 def from_rotvec(r: ArrayLike) -> Array:
@@ -128,14 +142,17 @@ def from_rotvec(r: ArrayLike) -> Array:
 
 
 def to_rotvec(q: ArrayLike) -> Array:
-    """The rotation vector r (|r| ≤ π) of the rotation q; `q` need not be unit (any finite magnitude).
+    """The rotation vector r (|r| ≤ π) of the rotation q; `q` need not be unit (any finite nonzero
+    magnitude; q = 0 or an infinite component gives NaN).
 
     r = 2·atan2(|v|, |w|)·sgn(w) v/|v|. Series-switched at the identity: value 0, Jacobian [0 | 2·I₃].
     """
     q = prescale(check_trailing(q, 4, "q"))[0]
+    undefined = _undefined(q)
     q = jnp.where(q[..., :1] < 0, -q, q)
     v = q[..., 1:]
-    return (2.0 * atan2_over(sum_squares(v), q[..., 0]))[..., None] * v
+    r = (2.0 * atan2_over(sum_squares(v), q[..., 0]))[..., None] * v
+    return jnp.where(undefined[..., None], jnp.nan, r)
 
 
 def to_matrix(q: ArrayLike) -> Array:
@@ -304,7 +321,7 @@ def to_euler(q: ArrayLike, seq: str) -> Array:
     **Arguments:**
 
     - `q`: quaternions, shape `(..., 4)`; need not be unit (only the rotation matters, at any finite
-      magnitude); sign-invariant.
+      nonzero magnitude; q = 0 or an infinite component gives NaN angles); sign-invariant.
     - `seq`: 3 axes; lower case extrinsic, upper case intrinsic (see `from_euler`).
 
     **Returns:** angles in radians, shape `(..., 3)`, in the order of `seq`.
@@ -315,6 +332,7 @@ def to_euler(q: ArrayLike, seq: str) -> Array:
     """
     extrinsic, axes = _parse_seq(seq)
     q = prescale(check_trailing(q, 4, "q"))[0]
+    undefined = _undefined(q)
     i, j, k = axes if extrinsic else axes[::-1]
     symmetric = i == k
     if symmetric:
@@ -350,9 +368,10 @@ def to_euler(q: ArrayLike, seq: str) -> Array:
     angles = jnp.stack([first, middle, third], axis=-1)
     # Every angle is in [−2π, 2π]; one wrap into [−π, π] as SciPy does (±π are both kept).
     two_pi = 2.0 * jnp.pi
-    return jnp.where(
+    angles = jnp.where(
         angles < -jnp.pi, angles + two_pi, jnp.where(angles > jnp.pi, angles - two_pi, angles)
     )
+    return jnp.where(undefined[..., None], jnp.nan, angles)
 
 
 def from_two_vectors(a: ArrayLike, b: ArrayLike) -> Array:

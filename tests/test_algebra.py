@@ -164,3 +164,31 @@ def test_incompatible_batch_shapes_raise():
         ValueError, match=r"do not broadcast: `p` has shape \(3, 4\); `q` has shape \(2, 4\)"
     ):
         jq.multiply(np.zeros((3, 4)), np.zeros((2, 4)))
+
+
+def test_exp_and_log_where_squares_overflow_or_underflow():
+    """Against mpmath at 40 digits and complex exp: |v| so large that 4|v|² overflows, eʷ = ∞ with a
+    zero vector component, and w < 0 with |v| so small that |v|² underflows (the angle is then π, the
+    axis v's own direction). The old code gave NaN, NaN·0 = NaN components and π·v instead of π·v̂."""
+    import mpmath
+
+    mpmath.mp.dps = 40
+    for size in [1e160, 1e200, -3e300]:
+        got = np.asarray(jq.exp(np.array([0.0, 0.0, size, 0.0])))
+        x = mpmath.mpf(size)
+        want = [float(mpmath.cos(x)), 0.0, float(mpmath.sin(x) / x * x), 0.0]
+        np.testing.assert_allclose(got, want, atol=1e-15)
+    np.testing.assert_array_equal(jq.exp(np.array([800.0, 0, 0, 0])), [np.inf, 0, 0, 0])
+    got = np.asarray(jq.exp(np.array([800.0, 1.0, 0, 0])))
+    np.testing.assert_array_equal(got[2:], [0.0, 0.0])
+    np.testing.assert_array_equal(np.sign(got[:2]), np.sign([np.cos(1.0), np.sin(1.0)]))
+    assert np.all(np.isinf(got[:2]))
+    for dtype, tiny in [(np.float64, 1e-160), (np.float64, 1e-300), (np.float32, 1e-19)]:
+        for sign in [1.0, -1.0]:
+            v = np.array([0.0, 0.6, sign * 0.8]) * tiny
+            got = np.asarray(jq.log(np.concatenate([[-2.0], v]).astype(dtype)))
+            want = [np.log(2.0), 0.0, 0.6 * np.pi, sign * 0.8 * np.pi]
+            np.testing.assert_allclose(got, want, rtol=1e-6 if dtype == np.float32 else 1e-15)
+    # The exact half-turn keeps its documented zero vector part; a tiny v with w > 0 stays v/w.
+    np.testing.assert_array_equal(jq.log(np.array([-1.0, 0, 0, 0])), np.zeros(4))
+    np.testing.assert_allclose(jq.log(np.array([2.0, 1e-160, 0, 0]))[1], 0.5e-160, rtol=1e-15)

@@ -655,3 +655,48 @@ def test_axes_near_the_float64_maximum_keep_their_direction(compile):
         wrap(jq.from_two_vectors)(jnp.asarray([1e308, 0, 0.0]), jnp.asarray([0, 1.0, 0]))
     )
     np.testing.assert_allclose(turn, [np.sqrt(0.5), 0, 0, np.sqrt(0.5)], rtol=0, atol=2e-16)
+
+
+@pytest.mark.parametrize("compile", [False, True])
+def test_conversions_of_no_rotation_are_nan(compile):
+    """q = 0 (also all-subnormal q, which XLA:CPU flushes to zero) and infinite components name no
+    rotation: the conversions give NaN, as `normalize` and `to_matrix` do, where they used to invent
+    the identity (to_rotvec, to_axis_angle) or a quarter-turn (to_euler "xyz" gave (0, −π/2, 0))."""
+    qs = np.array([[0.0, 0, 0, 0], [np.inf, 0, 0, 0], [1.0, -np.inf, 0, 0], [1e-320, 0, 0, 1e-320]])
+    maybe = jax.jit if compile else (lambda f: f)
+    assert np.all(np.isnan(maybe(jq.to_rotvec)(qs)))
+    axis, angle = maybe(jq.to_axis_angle)(qs)
+    assert np.all(np.isnan(axis)) and np.all(np.isnan(angle))
+    for seq in ["xyz", "ZYX", "zxz", "XYX"]:
+        assert np.all(np.isnan(maybe(lambda q, s=seq: jq.to_euler(q, s))(qs))), seq
+    assert np.all(np.isnan(jq.to_matrix(qs[:1])))
+    # Ordinary inputs are untouched: SciPy's conversions of the same (non-unit) quaternions.
+    good = np.array([[2.0, 0, 0, 0], [0.1, 0.2, -0.3, 0.4], [-3.0, 1e-3, 0, 0]])
+    reference = Rotation.from_quat(good[:, [1, 2, 3, 0]])
+    np.testing.assert_allclose(maybe(jq.to_rotvec)(good), reference.as_rotvec(), atol=1e-15)
+    np.testing.assert_allclose(
+        maybe(lambda q: jq.to_euler(q, "xyz"))(good), reference.as_euler("xyz"), atol=1e-15
+    )
+
+
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16])
+def test_half_precision_matrices_and_means(dtype):
+    """float16/bfloat16 inputs to the eigenvector-based functions: XLA:CPU has no half-precision eigh,
+    so they are computed in float32 and returned in the input dtype (they raised NotImplementedError
+    from inside eigh, or "not inexact" for a bfloat16 inertia), agreeing with SciPy to the dtype's
+    resolution."""
+    rotation = Rotation.from_rotvec([0.3, -1.2, 0.5])
+    m = jnp.asarray(rotation.as_matrix(), dtype)
+    q = jq.from_matrix(m)
+    assert q.dtype == dtype
+    want = rotation.as_quat()[[3, 0, 1, 2]]
+    np.testing.assert_allclose(np.asarray(q, np.float64), want, atol=2e-2)
+    mean = jq.mean(jnp.asarray(np.stack([want, want]), dtype))
+    assert mean.dtype == dtype
+    np.testing.assert_allclose(np.asarray(mean, np.float64), want, atol=2e-2)
+    moments, axes = jq.principal_axes(jnp.diag(jnp.asarray([1.0, 2.0, 3.0], dtype)))
+    assert moments.dtype == dtype and axes.dtype == dtype
+    np.testing.assert_allclose(np.asarray(moments, np.float64), [1.0, 2.0, 3.0], atol=2e-2)
+    assert float(jq.angle_between(axes.astype(jnp.float32), jq.identity(dtype=jnp.float32))) < 2e-2
+    grad = jax.grad(lambda m: jnp.sum(jq.from_matrix(m).astype(jnp.float32)))(m)
+    assert grad.dtype == dtype and np.all(np.isfinite(np.asarray(grad, np.float64)))
