@@ -16,7 +16,7 @@ it is timed — a fast wrong answer does not count):
 - **W5** `jax.grad` of a loss on the final orientations w.r.t. all ω (constant ω of W1 and sampled ω
   of W3), time relative to the forward pass.
 
-Hygiene (STYLE.md rule 22): every JAX contender is compiled ahead of time (compile time reported
+Hygiene: every JAX contender is compiled ahead of time (compile time reported
 separately), results are blocked on (`block_until_ready`), contenders of one row are timed
 interleaved, in alternating order, and the median of the repeats is reported, as body-steps per second
 and as the ratio to the best peer of the row. Peers that would take longer than the preset's budget
@@ -310,7 +310,7 @@ def angle_error(p, q) -> np.ndarray:
 
 
 def _loss(q_final, target, xp):
-    """Σ |vec(r* ⊗ q)|²: smooth, sign-invariant loss on final orientations (NUMERICS.md §4)."""
+    """Σ |vec(r* ⊗ q)|²: smooth, sign-invariant loss on final orientations (docs/numerics.md §4)."""
     r = _q_mul(_q_conj(target, xp), q_final, xp)
     return xp.sum(r[..., 1:] * r[..., 1:])
 
@@ -561,7 +561,7 @@ def _make_jax_loop(problem: Problem, num_steps: int) -> Runner:
 
 
 def _make_jax_tuned(problem: Problem, num_steps: int) -> Runner:
-    """The tuned hand-written loop of PERFORMANCE.md: step hoisted, structure-of-arrays carry, unroll=8."""
+    """The tuned hand-written loop (benchmarks/README.md): step hoisted, structure-of-arrays carry, unroll=8."""
     import jax.numpy as jnp
     from jax import lax
 

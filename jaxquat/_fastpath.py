@@ -1,7 +1,7 @@
 """Fast paths of `integrate` for its most common use: the Lie–Euler step with a constant or a sampled ω.
 
 The results are those of the general scan in `_integrate.py` (the same steps, to round-off); only the
-loop is restructured, as measured in PERFORMANCE.md (issue 8):
+loop is restructured, as measured in benchmarks/README.md:
 
 - the step rotation of a constant ω is formed once, outside the loop, and for the final state the loop
   steps only its powers r^k = a_k + b_k v (two numbers per body, 5 flops a step instead of a Hamilton
@@ -14,7 +14,7 @@ loop is restructured, as measured in PERFORMANCE.md (issue 8):
   grid); the final state's derivatives store nothing per step: reverse mode is an adjoint that steps
   back with the inverse rotations, forward mode a tangent scan (`_sampled_final`);
 - the final state for a constant ω has a closed-form derivative (`_constant_final`);
-- the sampled run takes the exponential as a series in θ² (NUMERICS.md §4) instead of float64
+- the sampled run takes the exponential as a series in θ² (docs/numerics.md §4) instead of float64
   sin/cos, which XLA:CPU evaluates slowly, and checks as it goes that every step is small enough for
   it (|ω|Δt ≤ 0.5); if one is not, the run is made again with sin/cos;
 - renormalisation every `renormalize_every` steps happens between groups of steps, not as a

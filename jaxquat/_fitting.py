@@ -16,7 +16,7 @@ e = q \otimes r^* \ (\text{world frame}) \quad\text{or}\quad e = r^* \otimes q \
 i.e. $2\sin(\theta/2)\,\hat n$ for the error rotation of angle $\theta \in [0, \pi]$ about $\hat n$: the
 error in radians to third order. It is invariant under $r \to -r$ and $q \to -q$, linear (so
 Gauss–Newton is well conditioned) with the exact Jacobian at zero residual, and its squared norm
-$|\rho|^2 = 4(1 - \langle q, r\rangle^2)$ is smooth everywhere (NUMERICS.md §4): the sign switch at
+$|\rho|^2 = 4(1 - \langle q, r\rangle^2)$ is smooth everywhere (docs/numerics.md §4): the sign switch at
 $\theta = \pi$ flips the vector but changes neither the loss nor its gradient $J^\top\rho$.
 """
 
@@ -505,7 +505,7 @@ def _curve_model(params, times, reference, knots, frame, kind, substeps):
 
     Integrating from each observation to the next (rather than on a fixed grid and interpolating)
     makes the model exact at the observation times whatever their spacing; ω(t) does not depend on
-    q, so the fourth-order Magnus method applies (NUMERICS.md §2).
+    q, so the fourth-order Magnus method applies (docs/numerics.md §2).
     """
     delta, values = params
     curve = AngularVelocityCurve.through(knots, values, kind)

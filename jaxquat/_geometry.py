@@ -37,7 +37,7 @@ def angle_between(p: ArrayLike, q: ArrayLike) -> Array:
 
     $θ = 2\operatorname{atan2}(|\operatorname{vec}(p^* q)|, |w(p^* q)|)$ (never an arccos): sign-invariant (p, −p and q,
     −q give the same θ), scale-invariant (inputs need not be unit), and accurate to round-off for
-    tiny angles, where $2\arccos|⟨p, q⟩|$ floors at ~2e-8 rad (NUMERICS.md §4).
+    tiny angles, where $2\arccos|⟨p, q⟩|$ floors at ~2e-8 rad (docs/numerics.md §4).
 
     **Arguments:**
 
@@ -154,7 +154,8 @@ def canonicalize(q: ArrayLike) -> Array:
     positive).
 
     Use it only for sign-invariant outputs (display, hashing, comparison), never inside an integrator
-    or an interpolation (STYLE.md rule 10). Gradient: ±identity, by the locally constant sign.
+    or an interpolation (the sign jumps where w changes sign). Gradient: ±identity, by the locally
+    constant sign.
 
     **Arguments:** `q`, shape `(..., 4)`. **Returns:** shape `(..., 4)`.
     """
@@ -264,10 +265,11 @@ def _is_int(n) -> bool:
 def check_unit(q: ArrayLike, *, atol: float | None = None) -> Array:
     """Return `q` unchanged, raising at run time if some |q| differs from 1 by more than `atol`.
 
-    Opt-in value check (DESIGN.md §Errors) built on `equinox.error_if`: works eagerly and under `jit`,
-    `vmap` and autodiff (derivative: the identity). A failing check raises at run time an error whose
-    message contains "not unit" (`equinox.EquinoxRuntimeError` eagerly; through XLA's callback
-    machinery under `jax.jit`, a `jax.errors.JaxRuntimeError` or `ValueError`). NaN norms fail too.
+    Opt-in value check (jaxquat's functions do not inspect values otherwise) built on
+    `equinox.error_if`: works eagerly and under `jit`, `vmap` and autodiff (derivative: the
+    identity). A failing check raises at run time an error whose message contains "not unit"
+    (`equinox.EquinoxRuntimeError` eagerly; through XLA's callback machinery under `jax.jit`, a
+    `jax.errors.JaxRuntimeError` or `ValueError`). NaN norms fail too.
 
     **Arguments:**
 

@@ -10,7 +10,7 @@ The building blocks, also used by the rigid-body dynamics:
 
 and the public `integrate` and `sampled` built on them.
 
-Methods (NUMERICS.md §2): `"euler"` (Lie–Euler = the seed's corrected step with ω at the step start,
+Methods (docs/numerics.md §2): `"euler"` (Lie–Euler = the seed's corrected step with ω at the step start,
 order 1, exact for piecewise-constant ω), `"midpoint"` (exponential midpoint / RKMK2, order 2),
 `"magnus4"` (fourth-order Magnus with two Gauss points and one commutator; ω must not depend on q),
 `"magnus6"` (sixth-order Magnus with three Gauss points and three commutators; ω must not depend on q),
@@ -105,7 +105,7 @@ def _rotate_by(q: Array, phi: Array, frame: str) -> Array:
 
 
 def _rotation_minus_one(phi: Array) -> Array:
-    """exp(φ) − 1 = (−2 sin²(|φ|/4), sin(|φ|/2) φ/|φ|) without cancellation (NUMERICS.md §5)."""
+    """exp(φ) − 1 = (−2 sin²(|φ|/4), sin(|φ|/2) φ/|φ|) without cancellation (docs/numerics.md §5)."""
     theta_sq = sum_squares(phi)
     return jnp.concatenate(
         [cos_half_minus_one(theta_sq)[..., None], sinc_half(theta_sq)[..., None] * phi], axis=-1
@@ -333,7 +333,7 @@ def lie_step(
     On q the Lie methods compose exponentials (|q| is kept to round-off); on x (any pytree of arrays,
     or `None` for pure kinematics, then `g` is ignored) the matching Runge–Kutta scheme is used:
     `"euler"` → explicit Euler, `"midpoint"` → explicit midpoint, `"cf4"` and `"rk4"` → classical RK4,
-    `"naive"` → explicit Euler (NUMERICS.md §2).
+    `"naive"` → explicit Euler (docs/numerics.md §2).
 
     **Arguments:**
 
@@ -482,7 +482,7 @@ def scan_steps(
 
     With `checkpoint=True` the steps run as nested scans whose outer body is checkpointed (chunks of
     ⌈√n⌉ steps), so reverse mode stores O(√n) carries instead of every step's residuals
-    (PERFORMANCE.md); the forward pass is unchanged, the backward pass recomputes each chunk once.
+    (benchmarks/README.md); the forward pass is unchanged, the backward pass recomputes each chunk once.
     When saving, each saved block is itself checkpointed, so only the saved carries are stored.
 
     **Arguments:**
@@ -741,9 +741,9 @@ def integrate(
     r"""Integrate the orientation $\dot q = \tfrac12 \tilde ω q$ (world) or $\tfrac12 q \tilde ω$ (body)
     with `num_steps` fixed steps of size `dt` over `lax.scan`.
 
-    The default `"euler"` is the seed's corrected scheme (equation quatRateOfChangeCorrected followed
-    by renormalisation, seed `000_2989197062956dde.txt`) computed as the exact exponential step
-    $q_{k+1} = \exp(ω(t_k)Δt) ⊗ q_k$ (NUMERICS.md §1): exact for constant and piecewise-constant ω
+    The default `"euler"` is the seed's corrected scheme (the seed notes' equation quatRateOfChangeCorrected
+    followed by renormalisation; README, Sources) computed as the exact exponential step
+    $q_{k+1} = \exp(ω(t_k)Δt) ⊗ q_k$ (docs/numerics.md §1): exact for constant and piecewise-constant ω
     at any step size, first order for smoothly varying ω. Times are $t_k = t_0 + kΔt$ with an integer
     step count (no accumulated `t += dt`), in float64 when x64 is enabled.
 
@@ -763,7 +763,7 @@ def integrate(
 
     **Long runs in float32** (`compensated`): the Lie methods then accumulate the increment
     $δ = (R − 1) ⊗ q$ with $R − 1 = (−2\sin^2(θ/4), \sin(θ/2)\,\hat n)$ in Kahan-compensated summation
-    and renormalise every `renormalize_every` steps (NUMERICS.md §5): 10⁶ steps of 10⁻³ rad stay within
+    and renormalise every `renormalize_every` steps (docs/numerics.md §5): 10⁶ steps of 10⁻³ rad stay within
     ~1e-4 rad instead of 1e-3–1e-2 for plain stepping. The default `None` switches it on for float32
     (and float16) states; the baselines `"naive"` and `"rk4"` do not have it.
 

@@ -49,7 +49,7 @@ def rate(q: ArrayLike, omega: ArrayLike, *, frame: str = "world") -> Array:
 def corrected_rate(q: ArrayLike, omega: ArrayLike, dt: ArrayLike, *, frame: str = "world") -> Array:
     r"""The seed's corrected rate of change $\dot q_{\Delta t} = \frac{\tan(|ω|Δt/2)}{|ω|Δt}\,\tilde ω q$.
 
-    Equation quatRateOfChangeCorrected of seed `000_2989197062956dde.txt`: one Euler step
+    Equation quatRateOfChangeCorrected of the seed notes (README, Sources): one Euler step
     `q + dt * corrected_rate(q, omega, dt)` followed by renormalisation is exactly the rotation by
     ωΔt (for |ω|Δt < π), i.e. `step(q, omega, dt)`.
 
@@ -79,7 +79,7 @@ def corrected_rate(q: ArrayLike, omega: ArrayLike, dt: ArrayLike, *, frame: str 
 def step(q: ArrayLike, omega: ArrayLike, dt: ArrayLike, *, frame: str = "world") -> Array:
     """One corrected step: exp(ωΔt) ⊗ q (world frame) or q ⊗ exp(ωΔt) (body frame).
 
-    Equal to `normalize(q + dt * corrected_rate(q, omega, dt))` for |ω|Δt < π (NUMERICS.md §1), but
+    Equal to `normalize(q + dt * corrected_rate(q, omega, dt))` for |ω|Δt < π (docs/numerics.md §1), but
     computed with cos/sin: no tan pole, no sign flip past half a turn, no norm growth. Exact for
     constant ω at any step size. At ω = 0: value q, Jacobian w.r.t. ω ½Δt·[0; I₃]·q (world).
 

@@ -3,7 +3,7 @@
 Everything that is singular (or loses precision) at a point lives here: a norm with a usable gradient
 at zero, and the coefficient functions of the exponential map written as functions of the *squared*
 angle, switched to a Taylor series in θ² near zero behind a double `jnp.where` (mask the input before
-the unsafe operation, select after; NUMERICS.md §4).  Other modules never write their own guard.
+the unsafe operation, select after; docs/numerics.md §4).  Other modules never write their own guard.
 
 Also here: input validation helpers that raise a `ValueError` at trace time naming the argument.
 """

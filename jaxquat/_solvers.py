@@ -11,7 +11,7 @@ Solvers (`diffrax.AbstractSolver` subclasses): `NormalizedEuler` (ambient Euler,
 the Lie-group methods `LieEuler`, `ExpMidpoint`, `Magnus4`, `Magnus6`, `Magnus8`, `CF4` and the adaptive `RKMK45`. The Lie-group
 solvers take any term whose vector field returns the ambient $\dot q ∈ ℝ^4$ and recover the world-frame
 rotation increment of a stage themselves, $u = 2\,\mathrm{vec}(Δq ⊗ q^*)/|q|^2$ with $Δq$ the term's
-`prod` of $\dot q$ and the step's control (NUMERICS.md §3). This works for world- and body-frame fields,
+`prod` of $\dot q$ and the step's control (docs/numerics.md §3). This works for world- and body-frame fields,
 discards any radial part of $\dot q$, and handles a negative time direction. The same terms run under
 stock diffrax solvers.
 
@@ -177,8 +177,8 @@ def corrected_vector_field(
 ) -> Callable[[Any, Array, Any], Array]:
     r"""The seed's corrected rate $\dot q_{Δt} = \frac{\tan(|ω|Δt/2)}{|ω|Δt}\,\tilde ω q$ as a vector field.
 
-    Equation quatRateOfChangeCorrected of seed `000_2989197062956dde.txt`. One Euler step of size
-    exactly `dt` followed by renormalisation is the rotation $\exp(ωΔt) ⊗ q$ (NUMERICS.md §1), so
+    Equation quatRateOfChangeCorrected of the seed notes (README, Sources). One Euler step of size
+    exactly `dt` followed by renormalisation is the rotation $\exp(ωΔt) ⊗ q$ (docs/numerics.md §1), so
     `diffeqsolve(ODETerm(corrected_vector_field(ω, h)), NormalizedEuler(), t0, t1, dt0=h, ...)`
     reproduces the seed's scheme (= `jaxquat.integrate(..., method="euler")`): exact for constant or
     piecewise-constant (sampled) ω.
@@ -534,7 +534,7 @@ class LieEuler(_RKMK):
     r"""The Lie–Euler method: $q_{n+1} = \exp(h\,ω(t_n, q_n)) ⊗ q_n$, order 1.
 
     The seed's corrected step with ω taken at the step start, written as the exponential map
-    (NUMERICS.md §1): exact for constant and piecewise-constant (sampled) ω, so use it with
+    (docs/numerics.md §1): exact for constant and piecewise-constant (sampled) ω, so use it with
     `kinematic_vector_field` (the plain rate). The rotation vector is recovered from the term's
     $\dot q$ as $2\,\mathrm{vec}(h\dot q ⊗ q^*)$, so world- and body-frame fields both work. Other leaves of a
     tuple state `(q, x)` take an explicit Euler step. Dense output: Lie-algebra cubic Hermite
@@ -775,7 +775,7 @@ class Magnus4(_Magnus):
     For an angular velocity that depends on time only: with $c_{1,2} = \tfrac12 ∓ \tfrac{\sqrt3}{6}$ and
     $u_i = hω(t_n + c_i h)$, world frame: $φ = \tfrac12(u_1 + u_2) + \tfrac{\sqrt3}{12}\,u_2 × u_1$,
     $q_{n+1} = \exp(φ) ⊗ q_n$; body frame: $φ_b = \tfrac12(u_1+u_2) + \tfrac{\sqrt3}{12}\,u_1 × u_2$,
-    $q_{n+1} = q_n ⊗ \exp(φ_b)$ (NUMERICS.md §2).
+    $q_{n+1} = q_n ⊗ \exp(φ_b)$ (docs/numerics.md §2).
 
     The rates are recovered from the term at the step's initial state, $u_i = 2\,\mathrm{vec}(h\dot q_i ⊗ q_n^*)$
     (world) or $2\,\mathrm{vec}(q_n^* ⊗ h\dot q_i)$ (body), so `frame` must be the frame in which ω is a
@@ -943,7 +943,7 @@ class NormalizedEuler(diffrax.AbstractSolver):
     r"""Euler's method followed by renormalisation of the quaternion: $q_{n+1} = (q_n + h\dot q)/|q_n + h\dot q|$.
 
     With `corrected_vector_field(ω, dt)` and the constant step `dt0 = dt` this is the seed's scheme
-    exactly, $q_{n+1} = \exp(ω_n Δt) ⊗ q_n$ (NUMERICS.md §1, for $|ω|Δt < π$): exact for constant and
+    exactly, $q_{n+1} = \exp(ω_n Δt) ⊗ q_n$ (docs/numerics.md §1, for $|ω|Δt < π$): exact for constant and
     piecewise-constant (sampled) ω, and equal to `jaxquat.integrate(..., method="euler")`. With
     `kinematic_vector_field` it is the naive normalised Euler baseline (it rotates by $2\arctan(θ/2)$
     instead of θ per step). Other leaves of a tuple state `(q, x)` take a plain Euler step.
@@ -953,7 +953,7 @@ class NormalizedEuler(diffrax.AbstractSolver):
 
     ??? cite "Reference"
 
-        Seed `000_2989197062956dde.txt`, equation quatRateOfChangeCorrected.
+        The seed notes' equation quatRateOfChangeCorrected (README, Sources).
     """
 
     term_structure: ClassVar = diffrax.AbstractTerm
