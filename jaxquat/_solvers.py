@@ -56,6 +56,7 @@ from ._numerics import (
     check_frame,
     check_trailing,
     cross,
+    safe_norm,
     sum_squares,
 )
 from ._rotation import from_rotvec, rotate
@@ -308,6 +309,23 @@ def _exp_stage(u: Array, q: Array) -> Array:
 def _rotvec_between(q0: Array, q1: Array) -> Array:
     """The rotation vector U with exp(U) ⊗ q0 = q1 exactly (same sheet; |U| ≤ 2π, no sign fix)."""
     return 2.0 * log(multiply(q1, conjugate(q0)))[..., 1:]
+
+
+def _nearest_turn(u: Array, guess: Array) -> Array:
+    """The rotation vector u + 4πk·û nearest to `guess` (k an integer): the same quaternion,
+    exp(u + 4πk û) = exp(u), on the branch a step's own increments point to. `_rotvec_between` gives
+    |u| ≤ 2π, so a step turning further (|ω|h > 2π) needs the branch for its dense output to turn the
+    whole way between the steps (a CF4 step of 7 rad was interpolated through 7 − 4π, 2 rad off)."""
+    size = safe_norm(u, keepdims=True)
+    guess_size = safe_norm(guess, keepdims=True)
+    has_axis = size > 0
+    axis = jnp.where(has_axis, u, guess) / jnp.where(
+        has_axis, size, jnp.where(guess_size > 0, guess_size, 1.0)
+    )
+    turns = lax.stop_gradient(
+        jnp.round((jnp.sum(guess * axis, -1, keepdims=True) - size) / (4 * math.pi))
+    )
+    return jnp.where(turns == 0, u, u + (4 * math.pi) * turns * axis)
 
 
 def _eval_f(terms, t, treedef, q, xs, args):
@@ -660,7 +678,7 @@ class CF4(diffrax.AbstractSolver):
         x1 = _lin_leaves((1.0 / 6.0, 1.0 / 3.0, 1.0 / 3.0, 1.0 / 6.0), [k1, k2, k3, k4], x0)
         f_end = _eval_f(terms, t1, treedef, q1, x1, args)
         dq, dx_end = _apply_control(terms, f_end, control, treedef)
-        big_u1 = _rotvec_between(q0, q1)
+        big_u1 = _nearest_turn(_rotvec_between(q0, q1), inner + outer)
         k_end = _dexpinv(big_u1, _increment(dq, q1))
         qc = _hermite(big_u1, u1, k_end)
         xcs = [_hermite(b - a, s0, s1) for a, b, s0, s1 in zip(x0, x1, k1, dx_end, strict=True)]
@@ -702,6 +720,15 @@ class _Magnus(diffrax.AbstractSolver):
                 f"the vector field depends on the state's other leaves `x` of `y0 = (q, x)`, but "
                 f"{name} needs rates that are given functions of time (they are evaluated at the "
                 "Gauss points with the state frozen: order 1 otherwise); use CF4 or RKMK45."
+            )
+        if x0 and _depends_on(
+            lambda q: _leaves(terms.vf(t0, _join(treedef, q, x0), args), treedef)[1], q0
+        ):
+            # E.g. a position p' = rotate(v, q): Magnus evaluates it with q frozen, order 1.
+            raise ValueError(
+                f"the derivative of the state's other leaves `x` of `y0 = (q, x)` depends on q, but "
+                f"{name} evaluates it at the Gauss points with q frozen at the step start (order 1 "
+                "otherwise); use CF4 or RKMK45."
             )
         field = _kinematic_field_of(terms)
         if field is not None and field.frame != self.frame:

@@ -586,6 +586,50 @@ def test_magnus_solvers_refuse_a_state_dependent_tuple_field(solver):
     )  # Gauss quadrature: 4.6e-8 for Magnus4's two points at h = 0.1
 
 
+@pytest.mark.parametrize("solver", [jq.Magnus4, jq.Magnus8])
+def test_magnus_solvers_refuse_other_leaves_whose_derivative_reads_q(solver):
+    """(q, p) with p' = rotate(v, q) (a position carried in the body): Magnus evaluates p' with q frozen
+    at the step start, and a review measured order 1 (4.25e-2 → 2.11e-2 for h = 0.1 → 0.05, where CF4
+    gives 2.9e-8 → 1.8e-9) without a word. Only a dependence on x itself was refused."""
+
+    def carried(t, y, args):
+        q, _ = y
+        return jq.rate(q, jnp.array([0.0, 0.0, 1.0])), jq.rotate(jnp.array([1.0, 0.0, 0.0]), q)
+
+    y0 = (jq.identity(), jnp.zeros(3))
+    with pytest.raises(ValueError, match=rf"`x`.*depends on q.*{solver.__name__}.*CF4 or RKMK45"):
+        diffrax.diffeqsolve(diffrax.ODETerm(carried), solver(), 0.0, 1.0, 0.1, y0)
+    # CF4 takes it, at its order: p(1) = (sin 1, 1 − cos 1, 0).
+    sol = diffrax.diffeqsolve(diffrax.ODETerm(carried), jq.CF4(), 0.0, 1.0, 0.1, y0)
+    np.testing.assert_allclose(sol.ys[1][-1], [np.sin(1.0), 1.0 - np.cos(1.0), 0.0], atol=1e-7)
+
+
+@pytest.mark.parametrize("speed", [7.0, 13.0, -20.0])
+def test_cf4_dense_output_of_steps_turning_more_than_a_full_turn(speed):
+    """A CF4 step of 7 rad (|ω|h > 2π) ended exactly but was interpolated through the principal
+    logarithm's 7 − 4π: 1.96 and 2.40 rad off at t = 0.25 and 0.37 (a review, against exp(ωt)). The
+    interpolant now ends on the branch the step's increments point to. Exact for constant ω, like
+    the steps; the derivative through the dense output at ω = 0 is the closed form ½ t [0; I₃]."""
+    omega = jnp.array([0.0, 0.3 * np.sign(speed), speed])
+    ts = jnp.array([0.25, 0.37, 0.8, 1.0])
+    term = diffrax.ODETerm(jq.kinematic_vector_field(omega))
+    sol = diffrax.diffeqsolve(
+        term, jq.CF4(), 0.0, 1.0, 1.0, jq.identity(), saveat=diffrax.SaveAt(ts=ts)
+    )
+    exact = jq.from_rotvec(ts[:, None] * omega[None, :])
+    assert float(jnp.max(jq.angle_between(sol.ys, exact))) < 1e-13
+
+    def dense(w):
+        field = diffrax.ODETerm(jq.kinematic_vector_field(w))
+        saveat = diffrax.SaveAt(ts=jnp.array([0.3]))
+        return diffrax.diffeqsolve(field, jq.CF4(), 0.0, 1.0, 0.5, jq.identity(), saveat=saveat).ys[
+            0
+        ]
+
+    expected = 0.15 * np.concatenate([np.zeros((1, 3)), np.eye(3)])
+    np.testing.assert_allclose(jax.jacrev(dense)(jnp.zeros(3)), expected, atol=1e-15)
+
+
 @pytest.mark.parametrize("solver", [jq.Magnus4, jq.Magnus6, jq.Magnus8])
 def test_magnus_solvers_refuse_an_omega_that_depends_on_q(solver):
     """Magnus methods evaluate ω at the Gauss points with q frozen: an ω(t, q) silently dropped them to
