@@ -203,7 +203,10 @@ def from_matrix(m: ArrayLike) -> Array:
 
     **Arguments:**
 
-    - `m`: matrices, shape `(..., 3, 3)`; need not be exactly orthogonal.
+    - `m`: matrices, shape `(..., 3, 3)`; need not be exactly orthogonal. A reflection (det < 0) is
+      accepted, unlike SciPy's `Rotation.from_matrix`, and gives its nearest rotation; for an exact
+      reflection such as −I, or the zero matrix, that rotation is not unique and one of them is
+      returned, with NaN derivatives.
 
     **Returns:** unit quaternions, shape `(..., 4)`, canonicalised to w ≥ 0 (q and −q are the same
     rotation; `from_matrix(to_matrix(q))` is ±q).
