@@ -17,7 +17,7 @@ from ._numerics import (
     cos_half,
     power_of_two_times,
     prescale,
-    safe_norm,
+    scaled_norm,
     sinc_half,
     sum_squares,
     unit_vector,
@@ -87,8 +87,7 @@ def conjugate(q: ArrayLike) -> Array:
 def norm(q: ArrayLike) -> Array:
     """The Euclidean norm |q| = √(w² + x² + y² + z²), shape `(...)`. Gradient 0 at q = 0; NaN in, NaN out."""
     q = check_trailing(q, 4, "q")
-    q, e = prescale(q)  # exact powers of two: |q| of any finite q the dtype holds, no overflow
-    return power_of_two_times(safe_norm(q), e)
+    return scaled_norm(q)  # |q| of any finite q the dtype holds, no overflow
 
 
 def inverse(q: ArrayLike) -> Array:
@@ -147,8 +146,7 @@ def exp(q: ArrayLike) -> Array:
     # 4|v|² overflows for |v| above ~6.7e153 (float64; ~9.2e18 in float32): there |v| itself is
     # taken, prescaled, in the direct formula (sin|v|/|v| is then at most 1/|v|, far from the series).
     huge = jnp.isinf(theta_sq) & jnp.all(jnp.isfinite(v), axis=-1)
-    scaled, e = prescale(jnp.where(huge[..., None], v, jnp.ones_like(v)))
-    size = power_of_two_times(jnp.sqrt(sum_squares(scaled)), e)
+    size = scaled_norm(jnp.where(huge[..., None], v, jnp.ones_like(v)))
     w = jnp.where(huge, scale * jnp.cos(size), w)
     xyz = jnp.where(huge[..., None], (scale * jnp.sin(size) / size)[..., None] * v, xyz)
     # eʷ = ∞ times a zero component is a zero component (as for complex exp(800 + 0j) = ∞ + 0j).

@@ -230,6 +230,13 @@ def power_of_two_times(y: Array, e: Array) -> Array:
     return y * up1 * up2
 
 
+def scaled_norm(x: Array) -> Array:
+    """|x| over the last axis for any finite x the dtype holds (|x|² would overflow or underflow:
+    x is scaled by an exact power of two first, `prescale`); gradient 0 at x = 0 (`safe_norm`)."""
+    x, e = prescale(x)
+    return power_of_two_times(safe_norm(x), e)
+
+
 def safe_norm(x: Array, axis: int = -1, keepdims: bool = False) -> Array:
     """Euclidean norm whose gradient at `x = 0` is 0 instead of NaN.
 
