@@ -182,7 +182,9 @@ def principal_axes(inertia: ArrayLike) -> tuple[Array, Array]:
 
     **Arguments:**
 
-    - `inertia`: symmetric inertia tensors, shape `(..., 3, 3)`.
+    - `inertia`: symmetric positive semidefinite inertia tensors, shape `(..., 3, 3)` (checked when
+      concrete). A zero moment is allowed: a rod's inertia (points on one line) has the line as the
+      axis of moment ≈ 0, which may come out as a tiny negative number from rounding.
 
     **Returns:** `(moments, q)`: the principal moments in ascending order, shape `(..., 3)`, and the unit
     quaternion `q` of the rotation R (det R = +1) whose columns are the principal axes, shape `(..., 4)`.
@@ -193,7 +195,7 @@ def principal_axes(inertia: ArrayLike) -> tuple[Array, Array]:
     moments; the gradient through q is then undefined (the eigenvector gradient divides by the gap).
     """
     inertia = check_matrix(inertia, "inertia")
-    inertia = _check_inertia(inertia, "inertia")
+    inertia = _check_inertia(inertia, "inertia", semidefinite=True)
     moments, axes = jnp.linalg.eigh(at_least_float32(inertia))  # (no half-precision eigh)
     # Make the frame right-handed by flipping the last axis where needed.
     det = jnp.linalg.det(axes)
@@ -210,8 +212,12 @@ def _is_matrix(inertia: Array) -> bool:
     return inertia.ndim >= 2 and inertia.shape[-2:] == (3, 3)
 
 
-def _check_inertia(inertia: ArrayLike, name: str = "inertia") -> Array:
-    """Check the shape (`(..., 3, 3)` or `(..., 3)`) and, when concrete, symmetry and positivity."""
+def _check_inertia(
+    inertia: ArrayLike, name: str = "inertia", *, semidefinite: bool = False
+) -> Array:
+    """Check the shape (`(..., 3, 3)` or `(..., 3)`) and, when concrete, symmetry and positivity
+    (moments > 0; with `semidefinite`, ≥ 0 up to the symmetry check's relative √ε, which admits the
+    rounding residue of a zero moment: a rod or a single point)."""
     inertia = as_float_array(inertia, name)
     if not _is_matrix(inertia) and (inertia.ndim == 0 or inertia.shape[-1] != 3):
         raise ValueError(
@@ -231,7 +237,15 @@ def _check_inertia(inertia: ArrayLike, name: str = "inertia") -> Array:
         moments = np.linalg.eigvalsh(0.5 * (values + np.swapaxes(values, -1, -2)))
     else:
         moments = values
-    if np.any(moments <= 0):
+    if semidefinite:
+        scale = np.max(np.abs(moments), axis=-1, keepdims=True)
+        tolerance = np.sqrt(float(jnp.finfo(inertia.dtype).eps)) * scale
+        if np.any(moments < -tolerance):
+            raise ValueError(
+                f"`{name}` must be positive semidefinite (principal moments ≥ 0); got moments "
+                f"{moments.min()}."
+            )
+    elif np.any(moments <= 0):
         raise ValueError(
             f"`{name}` must be positive definite (principal moments > 0); got moments {moments.min()}."
         )
@@ -600,8 +614,12 @@ def simulate_deformable_body(
     - `positions`: a callable `positions(t) -> (n, 3)` giving the body-frame shape; it must be
       differentiable in t and traceable by JAX. Its centre of mass may move; it is removed. The
       points must not all lie on one line (nor coincide): I(t) is then singular and the spin about
-      that line undetermined — a `ValueError` when that holds at t0 and the inputs are concrete,
-      NaN from a time at which it happens later.
+      that line undetermined — a `ValueError` when that holds at t0 and the inputs are concrete.
+      A shape that reaches a line *later* is not detected: the spin about the line (L over a moment
+      that goes to 0) has no bounded integral, and the result is NaN only when a step or stage time
+      lands on that instant exactly; otherwise it is a finite unit quaternion that does not
+      converge as dt → 0 (it changes completely with dt). Keep the smallest principal moment of
+      `inertia_tensor(masses, positions(t))` away from 0 over the run (check it on a grid of t).
     - `q0`: initial orientation, shape `(4,)`.
     - `dt`, `num_steps`: the time step (a scalar) and the number of steps (a Python int ≥ 0).
     - `angular_momentum`: the conserved world-frame angular momentum about the centre of mass,

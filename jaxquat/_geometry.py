@@ -204,6 +204,8 @@ def mean(
       dtype holds).
     - `weights`: optional non-negative weights, broadcastable to `q.shape[:-1]` (a negative weight
       is a `ValueError`, except under `jit`, where it cannot be seen and gives a meaningless result).
+      Weights that sum to zero over the averaged axes leave nothing to average: a `ValueError`, and
+      NaN under `jit` (SciPy returns the identity).
     - `axis`: the batch axes to average over: `None` (all, SciPy's default), an int or a tuple. They
       must hold at least one quaternion (else `ValueError`).
 
@@ -251,10 +253,29 @@ def mean(
                 "`weights` must be non-negative (as for SciPy's `Rotation.mean`); got "
                 f"{values[index]} at index {tuple(int(i) for i in index)}."
             )
+        total = jnp.sum(weights, axis=axis)
+        if not is_tracer(weights) and bool(jnp.any(total == 0)):
+            values = np.asarray(total)
+            index = tuple(int(i) for i in np.argwhere(values == 0)[0])
+            where = f" (batch index {index} of the mean)" if index else ""
+            raise ValueError(
+                f"`weights` sum to zero over the averaged axes {axis}{where}: there is nothing to "
+                "average, and no mean rotation."
+            )
         outer = weights.astype(q.dtype)[..., None, None] * outer
     moment = jnp.sum(outer, axis=axis)
+    if weights is not None:
+        # Zero total weight (seen only under jit): NaN rather than an arbitrary eigenvector of 0,
+        # with the identity's moment in its place so that its eigenvector derivative (which divides
+        # by the eigenvalue gap, 0 here) sends no NaN into the other means' gradients.
+        empty = (total == 0)[..., None, None]
+        identity = jnp.zeros((4, 4), moment.dtype).at[0, 0].set(1.0)
+        moment = jnp.where(empty, jnp.broadcast_to(identity, moment.shape), moment)
     result = top_eigenvector(moment)
-    return jnp.where(result[..., :1] < 0, -result, result)
+    result = jnp.where(result[..., :1] < 0, -result, result)
+    if weights is not None:
+        result = jnp.where(empty[..., 0], jnp.nan, result)
+    return result
 
 
 def _is_int(n) -> bool:
@@ -274,13 +295,21 @@ def check_unit(q: ArrayLike, *, atol: float | None = None) -> Array:
     **Arguments:**
 
     - `q`: quaternions, shape `(..., 4)`.
-    - `atol`: tolerance on |q| − 1; default √ε of the dtype (1.5e-8 float64, 3.5e-4 float32).
+    - `atol`: tolerance on |q| − 1, a finite number ≥ 0 (a Python or NumPy scalar); default √ε of
+      the dtype (1.5e-8 float64, 3.5e-4 float32).
 
     **Returns:** `q`.
     """
     q = check_trailing(q, 4, "q")
     if atol is None:
         atol = float(jnp.finfo(q.dtype).eps) ** 0.5
+    elif not (
+        isinstance(atol, (int, float, np.integer, np.floating))
+        and not isinstance(atol, (bool, np.bool_))
+        and math.isfinite(atol)
+        and atol >= 0
+    ):
+        raise ValueError(f"`atol` must be a finite non-negative number; got {atol!r}.")
     deviation = jnp.abs(jnp.sqrt(sum_squares(q)) - 1.0)
     return eqx.error_if(
         q, ~(deviation <= atol), f"`q` is not unit: |q| - 1 exceeds atol={atol:.3g}."

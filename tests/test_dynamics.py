@@ -535,6 +535,26 @@ def test_principal_axes(getkey):
         )
 
 
+def test_principal_axes_of_a_rod():
+    """Points on one line have a singular (semidefinite) inertia whose principal axes exist: the line,
+    moment 0, and any two perpendicular axes. Its rounding residue (a moment of -2e-16) was refused as
+    "not positive definite"; a truly negative moment still is."""
+    direction = np.array([1.0, 2.0, 2.0]) / 3.0
+    offsets = np.array([-1.5, 0.25, 2.0])
+    masses = np.array([1.0, 2.0, 0.5])
+    inertia = jq.inertia_tensor(masses, offsets[:, None] * direction[None, :])
+    moments, q = jq.principal_axes(inertia)
+    transverse = np.sum(masses * offsets**2)  # about the origin, which lies on the line
+    np.testing.assert_allclose(moments, [0.0, transverse, transverse], atol=1e-13)
+    axis = np.asarray(jq.rotate(np.array([1.0, 0.0, 0.0]), q))
+    np.testing.assert_allclose(abs(axis @ direction), 1.0, atol=1e-14)
+    with pytest.raises(ValueError, match="positive semidefinite.*got moments -1.0"):
+        jq.principal_axes(jnp.diag(jnp.array([-1.0, 2.0, 3.0])))
+    # The dynamics still require a positive definite inertia.
+    with pytest.raises(ValueError, match="positive definite"):
+        jq.euler_equations(jnp.ones(3), inertia)
+
+
 def test_euler_equations_component_form(getkey):
     omega = jax.random.normal(getkey(), (7, 3))
     torque = jax.random.normal(getkey(), (7, 3))

@@ -266,6 +266,34 @@ def test_mean_bad_arguments():
     jq.mean(q, np.abs(weights))  # zero and positive weights are fine
 
 
+def test_mean_of_zero_total_weight_is_an_error_or_nan():
+    """Weights summing to zero leave nothing to average: eigh's last eigenvector of the zero matrix,
+    (0, 0, 0, 1), a half-turn about z, came out silently (also for one zero-weight slice of a batched
+    mean). A ValueError when the weights are concrete; under jit NaN in that slice only, with finite,
+    correct gradients for the others."""
+    pair = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]])
+    with pytest.raises(ValueError, match=r"`weights` sum to zero over the averaged axes \(0,\)"):
+        jq.mean(pair, np.zeros(2))
+    q = np.stack([np.array([[1.0, 0.0, 0.0, 0.0], [0.6, 0.8, 0.0, 0.0]]), pair])
+    weights = np.array([[1.0, 2.0], [0.0, 0.0]])
+    with pytest.raises(ValueError, match=r"sum to zero .* \(batch index \(1,\) of the mean\)"):
+        jq.mean(q, weights, axis=1)
+    jitted = jax.jit(lambda q, w: jq.mean(q, w, axis=1))
+    out = np.asarray(jitted(q, weights))
+    assert np.all(np.isnan(out[1]))
+    expected = Rotation.from_quat(q[0], scalar_first=True).mean(weights[0])
+    assert_quat_close(out[0], expected.as_quat(scalar_first=True), atol=1e-14)
+    # The gradient of the non-empty mean: the same as that mean computed on its own, 0 for the empty
+    # slice (the NaN output must not leak into it).
+    grad = jax.grad(lambda w: jitted(q, w)[0, 1])(weights)
+    alone = jax.grad(lambda w: jq.mean(q[0], w)[1])(weights[0])
+    np.testing.assert_allclose(grad[0], alone, rtol=1e-12)
+    np.testing.assert_array_equal(grad[1], 0.0)
+    np.testing.assert_allclose(
+        jax.jacfwd(lambda w: jitted(q, w)[0, 1])(weights), grad, rtol=1e-12, atol=0
+    )
+
+
 # ---------------------------------------------------------------------------------------------------
 # check_unit
 
@@ -288,6 +316,14 @@ def test_check_unit_passes_unit_and_rejects_others():
     np.testing.assert_array_equal(jq.check_unit(q32), q32)  # default atol √ε(float32)
     # Differentiable: the identity map.
     np.testing.assert_array_equal(jax.jacrev(lambda x: jq.check_unit(x))(q[0]), np.eye(4))
+
+
+@pytest.mark.parametrize("atol", ["x", -1.0, math.nan, math.inf, True, [1e-3]])
+def test_check_unit_rejects_a_bad_atol(atol):
+    """A string atol was a bare TypeError from the message's format; a negative one failed every
+    quaternion; NaN passed none."""
+    with pytest.raises(ValueError, match="`atol` must be a finite non-negative number"):
+        jq.check_unit(jnp.array([1.0, 0.0, 0.0, 0.0]), atol=atol)
 
 
 @pytest.mark.parametrize("dtype, tol", [("float32", 1e-6), ("float64", 1e-14)])
