@@ -501,15 +501,25 @@ def _not_a_knot_second_derivatives(knots: Array, values: Array) -> Array:
 
 
 def _curve_model(params, times, reference, knots, frame, kind, substeps):
-    """q0, the curve, and the orientations at `times`: `substeps` Magnus-4 steps per interval.
+    """q0, the curve, and the orientations at `times`: `substeps` Magnus-4 steps per interval
+    between neighbouring points of the merged grid of observation times and knots.
 
-    Integrating from each observation to the next (rather than on a fixed grid and interpolating)
-    makes the model exact at the observation times whatever their spacing; ω(t) does not depend on
-    q, so the fourth-order Magnus method applies (docs/numerics.md §2).
+    Integrating from point to point (rather than on a fixed grid and interpolating) lands every
+    step sequence on the observation times whatever their spacing; ending steps on the knots too,
+    where ω's slope (piecewise linear) or third derivative (spline) jumps, keeps the method's fourth
+    order — a step straddling a kink of the piecewise-linear curve made it first order. ω(t) does
+    not depend on q, so the fourth-order Magnus method applies (docs/numerics.md §2).
     """
     delta, values = params
     curve = AngularVelocityCurve.through(knots, values, kind)
     q0 = _perturb(reference, delta, frame)
+    num_obs = times.shape[0]
+    # Knots outside the observed span give steps of length 0 (the identity) once clipped to it.
+    inner = jnp.clip(knots.astype(times.dtype), times[0], times[-1])
+    points = jnp.concatenate([times, inner])
+    order = jnp.argsort(points, stable=True)  # (times first among equal values)
+    grid = points[order]
+    where = jnp.zeros(order.shape, order.dtype).at[order].set(jnp.arange(order.shape[0]))
 
     def interval(q, bounds):
         start, end = bounds
@@ -517,8 +527,9 @@ def _curve_model(params, times, reference, knots, frame, kind, substeps):
         q = integrate(q, curve, h, substeps, frame=frame, method="magnus4", t0=start, save="final")
         return q, q
 
-    _, later = lax.scan(interval, q0, (times[:-1], times[1:]))
-    return q0, curve, jnp.concatenate([q0[None], later], axis=0)
+    _, later = lax.scan(interval, q0, (grid[:-1], grid[1:]))
+    along = jnp.concatenate([q0[None], later], axis=0)
+    return q0, curve, along[where[:num_obs]]
 
 
 def _curve_residuals(params, args, frame, kind, substeps):
@@ -658,8 +669,13 @@ def fit_angular_velocity(
       $q_0 \otimes \exp(\omega(t - t_0))$ (body), in closed form (`step`).
     - `model="piecewise_linear"` / `"spline"`: ω(t) is an `AngularVelocityCurve` through values at
       `knots` (linear, or the not-a-knot cubic spline). The model integrates from each observation time
-      to the next with `substeps` fourth-order Magnus steps (`integrate(..., method="magnus4")`), so
-      non-uniform times are handled exactly at the observations without interpolating a trajectory.
+      or knot to the next with `substeps` fourth-order Magnus steps (`integrate(..., method="magnus4")`):
+      non-uniform times need no interpolated trajectory, and no step straddles a knot, where ω's
+      slope or third derivative jumps. The model is not exact: its error falls as substeps⁻⁴.
+      Measured on exact data (SciPy DOP853) from ω(t) with knot values ~2 rad/s, 6 knots: with 25
+      observations over 6 s the default `substeps=2` leaves knot errors ~5e-3 rad/s and residuals
+      ~2e-3 rad (substeps=4: 3e-4 and 1e-4; 8: 2e-5 and 7e-6); denser data need fewer substeps.
+      When the fit's residuals are near the noise, refit with `substeps` doubled to check.
 
     **Starting point.** Found from the data unless `omega0` is given: the log-differences of
     neighbouring observations, $\omega_k = \log(r_{k+1} r_k^*)/Δt_k$ (`angular_velocity`, shortest
@@ -698,6 +714,10 @@ def fit_angular_velocity(
     - `solver`: an `optimistix` least-squares solver; default
       `optimistix.LevenbergMarquardt(rtol=1e-6, atol=1e-6)` (1e-4 in float32).
     - `max_steps`: the solver's step limit; reaching it gives `converged=False`, not an error.
+      `converged=True` says only that the solver met its tolerances, not that the model fits: data
+      outside the domain above (most intervals turning by more than π, say) can converge to a wrong
+      minimum. Compare `loss` with what the noise gives, ½ Σ w_k · 3σ² for rotation-vector noise
+      of σ per axis (the rms of a good fit's `residual_angles` is then about σ√3).
     - `polish`: at most this many `optimistix.GaussNewton` steps (tolerance 1e-12; 1e-6 in float32)
       after `solver`, taken if they converge: they reach the optimum to round-off, where the damped
       solver's loss-based acceptance test stalls ~1e-10 short of it on noisy data. 0 switches it off.
@@ -1084,7 +1104,11 @@ def fit_rigid_body(
     - `inertia0`: optional starting principal moments `(3,)` (any scale). `omega0`: optional starting
       body-frame ω at `times[0]`, `(3,)`.
     - `method`, `substeps`: the integrator (see `simulate_rigid_body`) and its steps per interval.
-    - `solver`, `max_steps`, `polish`: as in `fit_angular_velocity`.
+      The default (cf4, 4 steps) is not exact: on exact data (I = 1 : 1.6 : 2.3, 100 observations
+      over 10 s) it leaves 8e-6 in the ratios, and with 40 observations at σ = 1e-3 it moves the
+      fit by ~15 % of its statistical spread. Raise `substeps` for sparse, precise data.
+    - `solver`, `max_steps`, `polish`: as in `fit_angular_velocity` (`converged` likewise says only
+      that the solver met its tolerances).
 
     **Returns:** a `RigidBodyFit`: `.inertia` (I₁ = 1), `.inertia_ratios`, `.omega0`, `.q0`,
     `.residual_angles`, `.loss`, `.num_steps`, `.converged`.
