@@ -1651,10 +1651,18 @@ class _ArgumentError(Exception):
 
 
 class _Parser(argparse.ArgumentParser):
-    """An `ArgumentParser` whose errors are one-line `_ArgumentError`s, not a usage dump + exit."""
+    """An `ArgumentParser` whose errors are one-line `_ArgumentError`s, not a usage dump + exit, and
+    whose options that take a value may be given only once (as in `jaxquat`'s own parser)."""
 
     def error(self, message: str):  # noqa: D102 (argparse's signature)
         raise _ArgumentError(message)
+
+    def add_argument(self, *names, **kwargs):  # noqa: D102 (argparse's signature)
+        if names and names[0].startswith("-") and "action" not in kwargs:
+            from ._cli import _Once
+
+            kwargs["action"] = _Once
+        return super().add_argument(*names, **kwargs)
 
 
 def _positive_int(text: str) -> int:
@@ -1735,19 +1743,25 @@ def main(argv: list[str] | None = None) -> int:
     preset = PRESETS[args.preset]
     try:
         changes: dict[str, Any] = {}
-        if args.workloads:
+        if args.workloads is not None:
             workloads = tuple(w.strip().upper() for w in args.workloads.split(","))
+            if "" in workloads:  # `--workloads ""` ran the whole preset
+                raise ValueError(
+                    f"--workloads must be a comma-separated list of W1..W5, got {args.workloads!r}"
+                )
             unknown = [w for w in workloads if w not in ("W1", "W2", "W3", "W4", "W5")]
             if unknown:
-                raise ValueError(f"unknown workload(s) {', '.join(unknown)}; expected W1..W5")
+                raise ValueError(
+                    f"--workloads: unknown workload(s) {', '.join(unknown)}; expected W1..W5"
+                )
             changes["workloads"] = workloads
         if args.sizes:
             changes["sizes"] = args.sizes
             changes["w5_sizes"] = changes["sizes"]
-        if args.dtypes:
+        if args.dtypes is not None:
             dtypes = tuple(d.strip() for d in args.dtypes.split(","))
-            if any(d not in ("float64", "float32") for d in dtypes):
-                raise ValueError(f"--dtypes must be float64 and/or float32; got {args.dtypes}")
+            if any(d not in ("float64", "float32") for d in dtypes):  # "" included: not ignored
+                raise ValueError(f"--dtypes must be float64 and/or float32; got {args.dtypes!r}")
             changes["dtypes"] = dtypes
         if args.w5_sizes:
             changes["w5_sizes"] = args.w5_sizes
@@ -1760,6 +1774,8 @@ def main(argv: list[str] | None = None) -> int:
             changes["repeats"] = args.repeats
         if any(n < 1 for n in changes.get("sizes", ())) or changes.get("num_steps", 1) < 1:
             raise ValueError("--sizes and --steps must be positive")
+        if args.output.exists() and not args.output.is_dir():
+            raise ValueError(f"--output {args.output}: exists and is not a directory")
     except ValueError as e:
         print(f"jaxquat bench: error: {e}", file=sys.stderr)
         return 2
@@ -1775,7 +1791,11 @@ def main(argv: list[str] | None = None) -> int:
             print(message, flush=True)
 
     output: Path = args.output
-    output.mkdir(parents=True, exist_ok=True)
+    try:
+        output.mkdir(parents=True, exist_ok=True)
+    except OSError as e:  # a file on the way (a/b with a a file), no permission, ...
+        print(f"jaxquat bench: error: --output {output}: {e.strerror or e}", file=sys.stderr)
+        return 2
     started = time.perf_counter()
     report: dict[str, Any] = {
         "preset": args.preset,

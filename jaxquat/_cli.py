@@ -4,6 +4,7 @@
   instability), a fit of ω to noisy attitude observations, a summary table and a PNG figure.
 - `simulate`: an ensemble from options or a TOML file; writes an ensemble directory and a summary.
 - `fit`: fits ω to a CSV of `t,w,x,y,z` (header optional); `--json` for machine-readable output.
+  q0 is the orientation at t0, the first observation's time (printed with it).
 - `bench`: the benchmark suite with its quick preset.
 
 Every bad argument or file gives exactly one line on stderr (naming the file and line where it
@@ -137,17 +138,24 @@ def _seed(text: str) -> int:
     return value
 
 
+def _exact(value: float) -> str:
+    """`value` as `:g` writes it when that is exact, else its shortest repr: `1.7e+09` named two
+    different Unix times (1700000000.1 and 1700000000.2) alike."""
+    short = f"{value:g}"
+    return short if float(short) == value else repr(float(value))
+
+
 def _positive_float(text: str) -> float:
     value = _finite_float(text)
     if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be positive, got {value:g}")
+        raise argparse.ArgumentTypeError(f"must be positive, got {_exact(value)}")
     return value
 
 
 def _nonnegative_float(text: str) -> float:
     value = _finite_float(text)
     if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {value:g}")
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {_exact(value)}")
     return value
 
 
@@ -237,6 +245,13 @@ def _lines(text: str) -> list[str]:
 _CSV_COLUMNS = ("t", "w", "x", "y", "z")
 
 
+def _unquote(field: str) -> str:
+    """A CSV field without its double quotes (R's write.csv quotes the header: `"t","w",…`)."""
+    if len(field) >= 2 and field[0] == field[-1] == '"':
+        return field[1:-1].strip().replace('""', '"')
+    return field
+
+
 def read_observations_csv(path: str):
     """Read `t,w,x,y,z` rows (header optional; blank lines and `#` comments skipped).
 
@@ -253,7 +268,7 @@ def read_observations_csv(path: str):
         line = raw.strip()
         if not line or line.startswith("#"):
             continue
-        fields = [f.strip() for f in line.split(",")]
+        fields = [_unquote(f.strip()) for f in line.split(",")]
         if len(fields) == 1 and (";" in line or "\t" in line):
             # Another separator (a spreadsheet export): neither a wrong header nor one column.
             separator = ";" if ";" in line else "\t"
@@ -289,8 +304,8 @@ def read_observations_csv(path: str):
             values.append(value)
         if rows and values[0] <= rows[-1][0]:
             raise CommandLineError(
-                f"{path} line {number}: times must increase, but t = {values[0]:g} follows "
-                f"t = {rows[-1][0]:g}"
+                f"{path} line {number}: times must increase, but t = {_exact(values[0])} "
+                f"follows t = {_exact(rows[-1][0])}"
             )
         if values[1] == values[2] == values[3] == values[4] == 0.0:
             raise CommandLineError(f"{path} line {number}: the quaternion (w,x,y,z) is zero")
@@ -367,7 +382,16 @@ def _read_simulate_toml(path: str) -> tuple[dict[str, Any], dict[str, str]]:
         table = tomllib.loads(text, parse_float=_TomlFloat)
     except tomllib.TOMLDecodeError as e:
         raise CommandLineError(f"{path}: invalid TOML: {e}") from None
-    if "simulate" in table and isinstance(table["simulate"], dict) and len(table) == 1:
+    if isinstance(table.get("simulate"), dict):
+        # Options in a [simulate] table: nothing else may stand beside it.
+        for key, value in table.items():
+            if key != "simulate":
+                raise CommandLineError(
+                    f"{_table_where(text, path, key)}: unknown table [{key}] beside [simulate]"
+                    if isinstance(value, dict)
+                    else f"{_table_where(text, path, key)}: key {key!r} outside [simulate] "
+                    "(set every option in the [simulate] table, or none)"
+                )
         table = table["simulate"]
 
     def where(key: str) -> str:
@@ -391,6 +415,12 @@ def _read_simulate_toml(path: str) -> tuple[dict[str, Any], dict[str, str]]:
     config: dict[str, Any] = {}
     sources: dict[str, str] = {}
     for key, value in table.items():
+        if key not in _SIMULATE_KEYS and isinstance(value, dict):  # `[simulat]`: a misspelt table
+            known = ", ".join(sorted(_SIMULATE_KEYS))
+            raise CommandLineError(
+                f"{_table_where(text, path, key)}: unknown table [{key}] (expected [simulate] or "
+                f"top-level keys: {known})"
+            )
         if key not in _SIMULATE_KEYS:
             known = ", ".join(sorted(_SIMULATE_KEYS))
             raise CommandLineError(f"{where(key)}: unknown key {key!r} (known: {known})")
@@ -436,6 +466,18 @@ def _read_simulate_toml(path: str) -> tuple[dict[str, Any], dict[str, str]]:
     return config, sources
 
 
+def _table_where(text: str, path: str, name: str) -> str:
+    """The file and the line opening the table or key `name` (`[name]`, `[name.x]`, `[[name]]`,
+    `name = {…}`, `name.x = …`, the name quoted or not) when exactly one line plainly does; else the
+    file alone (as `where` in `_read_simulate_toml`: never a wrong line)."""
+    if '"""' in text or "'''" in text:
+        return path
+    quoted = rf"""(?:{re.escape(name)}|"{re.escape(name)}"|'{re.escape(name)}')"""
+    opening = re.compile(rf"\s*(?:\[\[?\s*{quoted}\s*[\].]|{quoted}\s*[.=])")
+    numbers = [number for number, line in enumerate(_lines(text), start=1) if opening.match(line)]
+    return f"{path} line {numbers[0]}" if len(numbers) == 1 else path
+
+
 # ----------------------------------------------------------------------------------------------------
 # Shared set-up
 
@@ -448,15 +490,21 @@ def _setup_jax(dtype: str) -> None:
 
 
 def _random_ensemble(seed: int, bodies: int, omega_mean, omega_scale: float, dtype):
-    """Haar-random orientations and ω = mean + scale·N(0, I), made with `jax.random`."""
+    """Haar-random orientations and ω = mean + scale·N(0, I), made with `jax.random`.
+
+    The draws are made in float32 whatever `dtype` (then renormalised in `dtype`): `jax.random`
+    draws other numbers in each dtype, so the same seed gave float32 and float64 runs different
+    bodies (median turn 94° against 106° at seed 0), and the two could not be compared.
+    """
     import jax
     import jax.numpy as jnp
 
+    from ._algebra import normalize
     from ._geometry import random
 
     key_q, key_w = jax.random.split(jax.random.key(seed))
-    q0 = random(key_q, (bodies,), dtype)
-    noise = jax.random.normal(key_w, (bodies, 3), dtype)
+    q0 = normalize(random(key_q, (bodies,), jnp.float32).astype(dtype))
+    noise = jax.random.normal(key_w, (bodies, 3), jnp.float32).astype(dtype)
     omega = jnp.asarray(omega_mean, dtype)[None, :] + jnp.asarray(omega_scale, dtype) * noise
     return q0, omega
 
@@ -546,11 +594,23 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         raise CommandLineError(
             f"the initial angular velocities ω = omega_mean + omega_scale·N(0, I) overflow "
             f"{dtype.name} ({sources['omega_mean']} {config['omega_mean']}, "
-            f"{sources['omega_scale']} {config['omega_scale']:g}); use smaller values"
+            f"{sources['omega_scale']} {_exact(config['omega_scale'])}); use smaller values"
             f"{_or_float64(dtype.name)}"
         )
     inertia = None if config["inertia"] is None else jnp.asarray(config["inertia"], dtype)
     index_before = _file_identity(os.path.join(config["output"], "index.json"))
+    method = config["method"] or ("cf4" if inertia is not None else "euler")
+    frame = config["frame"] or ("body" if inertia is not None else "world")
+    # Everything that determines the result, for index.json (`load_ensemble(...)["metadata"]["run"]`):
+    # the run is the same again from these options (with the same jax and jaxquat versions).
+    run = {
+        "command": "jaxquat simulate",
+        "jaxquat_version": _version(),
+        "jax_version": jax.__version__,
+        **{key: config[key] for key in _RUN_KEYS},
+        "method": method,
+        "frame": frame,
+    }
     try:
         result = simulate_ensemble(
             q0,
@@ -558,13 +618,14 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
             config["dt"],
             config["steps"],
             inertia=inertia,
-            frame=config["frame"],
-            method=config["method"],
+            frame=frame,
+            method=method,
             save_every=config["save_every"],
             statistics=config["statistics"],
             chunk_size=config["chunk_size"],
             path=config["output"],
-            progress=not args.no_progress,
+            metadata=run,
+            progress=_show_progress(args.no_progress),
         )
     except KeyboardInterrupt:
         raise _Interrupted(_saved_before_interrupt(config["output"], index_before)) from None
@@ -573,20 +634,19 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         outputs["total rotation angles"] = result.total_angle
     _check_finite_results(
         outputs,
-        f"the simulation (dt {config['dt']:g}, omega_scale {config['omega_scale']:g}, "
-        f"{dtype.name}); {config['output']}/ holds the invalid results. Use a smaller "
+        f"the simulation (dt {_exact(config['dt'])}, omega_scale {_exact(config['omega_scale'])}, "
+        f"{dtype.name}); {_directory(config['output'])} holds the invalid results. Use a smaller "
         f"--dt / --omega-scale{_or_float64(dtype.name)}",
     )
     kind = "rigid bodies" if inertia is not None else "kinematic bodies"
-    method = config["method"] or ("cf4" if inertia is not None else "euler")
     rows = [
         (
             "ensemble",
-            f"{config['bodies']:,} {kind}, {config['steps']:,} steps of {config['dt']:g} s",
+            f"{config['bodies']:,} {kind}, {config['steps']:,} steps of {_exact(config['dt'])} s",
         ),
         (
             "method / frame / dtype",
-            f"{method} / {config['frame'] or ('body' if inertia is not None else 'world')} / {dtype.name}",
+            f"{method} / {frame} / {dtype.name}",
         ),
         ("devices", f"{len(jax.devices())} ({jax.devices()[0].platform})"),
         ("wall time", f"{result.seconds:.2f} s in {result.num_chunks} chunk(s), compile included"),
@@ -600,9 +660,34 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     saved = (
         "final state" if not config["save_every"] else f"states every {config['save_every']} steps"
     )
-    rows.append(("written", f"{config['output']}/ ({saved}; read with jaxquat.load_ensemble)"))
+    rows.append(
+        ("written", f"{_directory(config['output'])} ({saved}; read with jaxquat.load_ensemble)")
+    )
+    if index_before is not None:  # the writer removed the previous run's files first
+        rows.append(("replaced", f"the ensemble that was in {_directory(config['output'])}"))
     _print_table(rows)
     return 0
+
+
+# The options recorded in index.json (with the method and frame the run used).
+_RUN_KEYS = (
+    "bodies",
+    "steps",
+    "dt",
+    "omega_mean",
+    "omega_scale",
+    "inertia",
+    "seed",
+    "dtype",
+    "save_every",
+    "chunk_size",
+    "statistics",
+)
+
+
+def _directory(path: str) -> str:
+    """`path` with one trailing slash (`run/` was printed as `run//`)."""
+    return os.path.join(path, "")
 
 
 def _file_identity(path: str) -> tuple[int, int, int] | None:
@@ -628,7 +713,10 @@ def _saved_before_interrupt(output: str, index_before: tuple[int, int, int] | No
         with open(index_path, encoding="utf-8") as f:
             index = json.load(f)
         steps = [step for record in index["records"] for step in record["steps"]]
-        done = f"after {index['steps_done']:,} of {index['num_steps']:,} steps; {output}/ holds"
+        done = (
+            f"after {index['steps_done']:,} of {index['num_steps']:,} steps; "
+            f"{_directory(output)} holds"
+        )
         if not steps:
             return (
                 f"{done} no saved states (without --save-every only the final state is saved, "
@@ -674,8 +762,8 @@ def _or_float64(dtype: str) -> str:
 
 def _show(value) -> str:
     if isinstance(value, (list, tuple)):
-        return ",".join(f"{v:g}" for v in value)
-    return f"{value:g}"
+        return ",".join(_exact(v) for v in value)
+    return _exact(value)
 
 
 def _check_finite_results(arrays: dict[str, Any], what: str) -> None:
@@ -702,8 +790,50 @@ def _print_table(rows: Sequence[tuple[str, str]]) -> None:
 # fit
 
 
+# The peak memory of `jaxquat fit` (reading the CSV included), measured with /usr/bin/time -v on
+# CPU: 0.70 GB for 100,000 rows, 0.84 GB for 200,000, 1.12 GB for 400,000, 2.0 GB for 1,000,000 —
+# about 0.56 GB + 1.4 kB a row. The time-varying models take more: 1.42 GB for 200,000 rows with
+# --model piecewise_linear --knots 10, ~4.3 kB a row (the spline is taken to be alike). Rounded up
+# here, so a file the check admits fits.
+_FIT_BYTES_BASE = 600 * 2**20
+_FIT_BYTES_PER_ROW = {"constant": 1_600, "piecewise_linear": 4_800, "spline": 4_800}
+
+
+def fit_memory_needed(rows: int, model: str = "constant") -> int:
+    """The bytes `jaxquat fit --model model` needs for `rows` observations (an estimate, rounded
+    up)."""
+    return _FIT_BYTES_BASE + _FIT_BYTES_PER_ROW[model] * rows
+
+
+def _memory_available() -> int | None:
+    """MemAvailable from /proc/meminfo in bytes, or None where it cannot be read (not Linux)."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def check_fit_memory(rows: int, available: int | None, path: str, model: str = "constant") -> None:
+    """Raise the one-line "out of memory" `CommandLineError` when fitting `rows` observations would
+    need more than `available` bytes (None: unknown, no check). Past it the kernel kills the process
+    without a word (a 1 GiB CSV holds some 15 million rows: ~24 GB)."""
+    if available is None:
+        return
+    needed = fit_memory_needed(rows, model)
+    if needed > available:
+        raise CommandLineError(
+            f"out of memory ({rows:,} observations need about {needed / 1e9:.1f} GB, "
+            f"{available / 1e9:.1f} GB is available); fitting {path}: fewer observations"
+        )
+
+
 def _cmd_fit(args: argparse.Namespace) -> int:
     times, quaternions = read_observations_csv(args.file)
+    check_fit_memory(times.shape[0], _memory_available(), args.file, args.model)
     _setup_jax("float64")
     import numpy as np
 
@@ -722,6 +852,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         "model": args.model,
         "frame": args.frame,
         "observations": int(times.shape[0]),
+        "t0": float(times[0]),  # q0 is the orientation at the first observation time, not at t = 0
         "q0": np.asarray(fit.q0, dtype=np.float64).tolist(),
         "residual_rms_deg": float(np.sqrt(np.mean(residuals**2))),
         "residual_max_deg": float(residuals.max()),
@@ -761,7 +892,8 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         for t, (x, y, z) in zip(report["knots"], report["omega_at_knots"], strict=True):
             print(f"  t = {t:<12.6g} omega = [{x:.6g}, {y:.6g}, {z:.6g}] rad/s")
     print(
-        f"q0 = [{', '.join(f'{v:.9g}' for v in report['q0'])}]  residual rms "
+        f"q0 = [{', '.join(f'{v:.9g}' for v in report['q0'])}] at t0 = {report['t0']!r} "
+        f"(the first observation)  residual rms "
         f"{report['residual_rms_deg']:.4g}°, max {report['residual_max_deg']:.4g}°, "
         f"{report['observations']} observations, converged: {report['converged']}"
     )
@@ -781,8 +913,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             "bench: the benchmark suite (jaxquat._bench) is not installed"
         ) from None
     if args.from_command_line:
-        # Large buffers on huge pages for every contender (see `relaunch_with_huge_pages`).
-        _bench.relaunch_with_huge_pages(["-m", "jaxquat", "bench", *args.bench_args])
+        # Large buffers on huge pages for every contender (see `relaunch_with_huge_pages`), with the
+        # options given before `bench` (`--distributed`) too; before jax.distributed connects.
+        _bench.relaunch_with_huge_pages(
+            ["-m", "jaxquat", *args.global_args, "bench", *args.bench_args]
+        )
+    _initialize_distributed(args)
     return int(_bench.main(["--preset", "quick", *args.bench_args]) or 0)
 
 
@@ -979,11 +1115,26 @@ def _demo_figure(output, times, spread_deg, times_fit, residuals, bodies):
 # The parser and the entry point
 
 
+_NO_PROGRESS_HELP = "no progress bar (there is none anyway when stderr is not a terminal)"
+
+
+def _show_progress(no_progress: bool) -> bool:
+    """Whether to draw a progress bar: not with `--no-progress`, nor when stderr is not a terminal
+    (a log file got the bar's carriage returns, and an error line after them was not a line)."""
+    if no_progress:
+        return False
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):  # no stream, or a closed one
+        return False
+
+
 def _build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog=_PROG,
         description="jaxquat: differentiable JAX quaternions, orientation integrators and ensembles.",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     parser.add_argument(
         "--distributed",
         action="store_true",
@@ -997,10 +1148,14 @@ def _build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--steps", type=_step_count, default=400, help="time steps (400)")
     demo.add_argument("--output", default="jaxquat_demo.png", help="PNG path (./jaxquat_demo.png)")
     demo.add_argument("--seed", type=_seed, default=0, help="random seed 0 … 2**32-1 (0)")
-    demo.add_argument("--no-progress", action="store_true", help="no progress bar")
+    demo.add_argument("--no-progress", action="store_true", help=_NO_PROGRESS_HELP)
     demo.set_defaults(
         func=lambda a: run_demo(
-            bodies=a.bodies, steps=a.steps, output=a.output, seed=a.seed, progress=not a.no_progress
+            bodies=a.bodies,
+            steps=a.steps,
+            output=a.output,
+            seed=a.seed,
+            progress=_show_progress(a.no_progress),
         )
     )
 
@@ -1037,7 +1192,10 @@ def _build_parser() -> argparse.ArgumentParser:
     simulate.add_argument(
         "--chunk-size", dest="chunk_size", type=_positive_int, help="steps per chunk"
     )
-    simulate.add_argument("--output", help="output directory (./jaxquat_ensemble)")
+    simulate.add_argument(
+        "--output",
+        help="output directory (./jaxquat_ensemble); a previous ensemble there is replaced",
+    )
     simulate.add_argument(
         "--no-statistics",
         dest="statistics",
@@ -1045,10 +1203,17 @@ def _build_parser() -> argparse.ArgumentParser:
         default=None,
         help="skip the per-body total-rotation statistics",
     )
-    simulate.add_argument("--no-progress", action="store_true", help="no progress bar")
+    simulate.add_argument("--no-progress", action="store_true", help=_NO_PROGRESS_HELP)
     simulate.set_defaults(func=_cmd_simulate)
 
-    fit = commands.add_parser("fit", help="fit ω to a CSV of t,w,x,y,z observations")
+    fit = commands.add_parser(
+        "fit",
+        help="fit ω to a CSV of t,w,x,y,z observations",
+        description="Fit ω to a CSV of t,w,x,y,z observations. Prints ω (or ω at the knots), q0 — "
+        "the fitted orientation at t0, the first observation's time (not at t = 0) — and the "
+        "residuals; --json prints the fields model, frame, observations, t0, q0, residual_rms_deg, "
+        "residual_max_deg, converged and omega, omega_norm (constant model) or knots, omega_at_knots.",
+    )
     fit.add_argument("file", help="CSV file: t,w,x,y,z per line, header optional")
     fit.add_argument(
         "--model",
@@ -1065,6 +1230,15 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     bench.set_defaults(func=_cmd_bench)
     return parser
+
+
+def _version() -> str:
+    from importlib import metadata
+
+    try:
+        return metadata.version("jaxquat")
+    except metadata.PackageNotFoundError:  # run from a source tree that is not installed
+        return "0+unknown"
 
 
 def _one_line(text: str) -> str:
@@ -1090,11 +1264,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             argv, bench_args = argv[: command + 1], argv[command + 1 :]
         args = parser.parse_args(_join_negative_vectors(argv))
         args.bench_args = bench_args
+        args.global_args = argv[:command] if command is not None else []  # e.g. --distributed
         args.from_command_line = from_command_line
-        if args.distributed:
-            import jax
-
-            jax.distributed.initialize()
+        if args.command != "bench":  # bench may relaunch itself first (see `_cmd_bench`)
+            _initialize_distributed(args)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             return int(args.func(args) or 0)
@@ -1104,6 +1277,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as e:  # the library's argument checks
         print(f"{_PROG}: error: {_one_line(e)}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # `jaxquat fit f.csv | head -1`: the reader has gone; nothing to say
+        _silence_stdout()
+        return _BROKEN_PIPE
     except OSError as e:  # the machine's side: an unwritable output path, a full disk, ...
         where = f"{e.filename!r}: " if e.filename == "" else f"{e.filename}: " if e.filename else ""
         print(f"{_PROG}: error: {where}{e.strerror or _one_line(e)}", file=sys.stderr)
@@ -1129,6 +1305,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
 
 
+def _initialize_distributed(args: argparse.Namespace) -> None:
+    if args.distributed:
+        import jax
+
+        jax.distributed.initialize()
+
+
 # Options whose value is a vector `x,y,z` (which may start with a minus sign).
 _VECTOR_OPTIONS = ("--omega-mean", "--inertia")
 _NEGATIVE_VECTOR = re.compile(r"-[0-9.]")
@@ -1147,6 +1330,21 @@ def _join_negative_vectors(argv: list[str]) -> list[str]:
             joined.append(argv[i])
             i += 1
     return joined
+
+
+# The exit status of a process killed by SIGPIPE (128 + 13), as `cat`, `seq`, ... give under `head`.
+_BROKEN_PIPE = 141
+
+
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null once its reader has gone, so the flush at exit writes nothing (and
+    Python prints no "Exception ignored … BrokenPipeError")."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):  # no file descriptor (captured in tests)
+        pass
 
 
 def _exit_now(status: int) -> NoReturn:

@@ -928,6 +928,7 @@ def simulate_ensemble(
     path: str | os.PathLike | None = None,
     devices: Sequence[jax.Device] | None = None,
     progress: bool | Callable[[int, int], None] = False,
+    metadata: dict[str, Any] | None = None,
 ) -> EnsembleResult:
     """Simulate many bodies at once, sharded over all devices, in chunks of time.
 
@@ -976,13 +977,16 @@ def simulate_ensemble(
     - `progress`: `False` (default), `True` for a tqdm progress bar on stderr, or a callable
       `progress(steps_done, num_steps)` called between chunks (raising from it, e.g.
       `KeyboardInterrupt`, stops the run and leaves `path` readable with the completed chunks).
+    - `metadata`: a JSON-serialisable dict recorded in `path`'s `index.json` as `"run"` (e.g. what
+      the initial state was drawn from, to reproduce the run); `load_ensemble(path)["metadata"]["run"]`.
 
     **Returns:** an `EnsembleResult`.
 
     **Errors:** a `ValueError` naming the argument for a bad `q0`, `omega`, `dt`, `t0`, `num_steps`,
     `inertia`, `torque`, `frame`, `method`, `save_every`, `chunk_size`, `statistics`, `progress`,
-    `path` (not a str or os.PathLike; a file; a non-empty directory that is not a jaxquat ensemble,
-    or one whose index.json is unreadable or malformed) or `devices` (not a non-empty sequence of
+    `metadata` (not a JSON-serialisable dict), `path` (not a str or os.PathLike; a file; a
+    non-empty directory that is not a jaxquat ensemble, or one whose index.json is unreadable or
+    malformed) or `devices` (not a non-empty sequence of
     distinct `jax.Device`s); for an `omega(t, q)` of the wrong shape; and, as in `integrate`, for a
     q-dependent `omega` with a Magnus method.
 
@@ -1010,6 +1014,15 @@ def simulate_ensemble(
         raise ValueError(f"`statistics` must be True or False; got {statistics!r}.")
     if not (isinstance(progress, bool) or callable(progress)):
         raise ValueError(f"`progress` must be a bool or a callable; got {progress!r}.")
+    if metadata is not None:
+        try:
+            if not isinstance(metadata, dict):
+                raise TypeError(type(metadata).__name__)
+            metadata = json.loads(json.dumps(metadata, allow_nan=False))
+        except (TypeError, ValueError, RecursionError) as e:
+            raise ValueError(
+                f"`metadata` must be a JSON-serialisable dict; got {metadata!r:.200} ({e})."
+            ) from None
     if torque is not None and not dynamic:
         raise ValueError("`torque` needs a rigid-body ensemble: pass `inertia` too.")
     if torque is not None:
@@ -1157,7 +1170,7 @@ def simulate_ensemble(
     times = float(t0) + float(dt) * np.asarray(saved_steps, np.float64) if save_every else None
     writer = None
     if path is not None and jax.process_index() == 0:
-        metadata = dict(
+        index_metadata = dict(
             batch_shape=list(batch),
             dtype=jnp.dtype(dtype).name,
             dynamic=dynamic,
@@ -1170,7 +1183,9 @@ def simulate_ensemble(
             num_bodies=num_bodies,
             num_devices=num_devices,
         )
-        writer = _StateWriter(path, metadata)
+        if metadata is not None:
+            index_metadata["run"] = metadata
+        writer = _StateWriter(path, index_metadata)
 
     def unpad_time_major(x, width):
         return x[:, :num_bodies].reshape((x.shape[0],) + batch + (width,))

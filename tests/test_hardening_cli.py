@@ -6,6 +6,9 @@ the argument and what was expected.
 """
 
 import json
+import os
+import subprocess
+import sys
 import types
 
 import jax.numpy as jnp
@@ -838,3 +841,253 @@ def test_vector_options_take_values_with_a_leading_minus(tmp_path, capsys):
     # A missing value is still reported as one (the next option is not taken for a vector).
     status, out, err = _run([*_simulate(tmp_path / "x"), "--omega-mean"], capsys)
     _assert_one_line_error(status, out, err, "--omega-mean", "expected one argument")
+
+
+# --- 12. review of the command line: messages, output, repeated and empty options ------------------
+
+
+def test_times_must_increase_names_distinguishable_times(tmp_path, capsys):
+    """`:g` printed Unix times as "t = 1.7e+09 follows t = 1.7e+09"."""
+    rows = ["1700000000.0,1,0,0,0", "1700000000.2,1,0,0,0", "1700000000.1,1,0,0,0"]
+    path = _write(tmp_path / "epoch.csv", rows)
+    status, out, err = _run(["fit", path], capsys)
+    _assert_one_line_error(status, out, err, "line 4", "t = 1700000000.1 follows t = 1700000000.2")
+
+
+def test_fit_reports_the_time_of_q0(tmp_path, capsys):
+    """q0 is the orientation at the first observation time, which the output did not say."""
+    times, qs = _observations(20)
+    path = _write(tmp_path / "obs.csv", _csv_lines(times + 1700000000.5, qs))
+    status, out, err = _run(["fit", path, "--json"], capsys)
+    assert status == 0, err
+    assert json.loads(out)["t0"] == 1700000000.5
+    status, out, err = _run(["fit", path], capsys)
+    assert status == 0, err
+    assert "at t0 = 1700000000.5 " in out
+    status, out, err = _run(["fit", "--help"], capsys)
+    assert status == 0 and "t0" in out
+
+
+@pytest.mark.parametrize(
+    "argv, fragments",
+    [
+        (["--steps", "5", "--steps", "6"], ["--steps", "only once", "got 5 and then 6"]),
+        (["--workloads", "W1", "--workloads", "W2"], ["--workloads", "only once"]),
+        (["--workloads", ""], ["--workloads", "''"]),
+        (["--workloads", "W1,"], ["--workloads", "'W1,'"]),
+        (["--dtypes", ""], ["--dtypes", "''"]),
+    ],
+)
+def test_bench_rejects_repeated_and_empty_options(argv, fragments, tmp_path, capsys, monkeypatch):
+    """A repeated bench option kept the last silently; an empty list ran the whole preset."""
+
+    def must_not_run():
+        raise AssertionError("the suite started despite a bad argument")
+
+    monkeypatch.setattr(_bench, "describe_machine", must_not_run)
+    status, out, err = _run(["bench", "--no-huge-pages", "--output", tmp_path, *argv], capsys)
+    _assert_one_line_error(status, out, err, "jaxquat bench: error:", *fragments)
+
+
+def test_bench_output_that_is_a_file_says_it_is_not_a_directory(tmp_path, capsys, monkeypatch):
+    def must_not_run():
+        raise AssertionError("the suite started despite a bad argument")
+
+    monkeypatch.setattr(_bench, "describe_machine", must_not_run)
+    (tmp_path / "afile").write_text("keep me")
+    status, out, err = _run(["bench", "--no-huge-pages", "--output", tmp_path / "afile"], capsys)
+    _assert_one_line_error(status, out, err, "jaxquat bench: error: --output", "not a directory")
+    assert (tmp_path / "afile").read_text() == "keep me"
+
+
+def test_no_progress_bar_when_stderr_is_not_a_terminal(tmp_path, capsys):
+    """The bar's carriage returns went into logs, and the error after them was not on a line of its
+    own ("\\rensemble: 0%|…\\r   \\rjaxquat: error: …")."""
+    argv = ["simulate", "--bodies", "4", "--steps", "3", "--output", tmp_path / "run"]
+    status, out, err = _run([*argv, "--dt", "1e30", "--omega-scale", "1e10"], capsys)
+    _assert_one_line_error(status, out, err, "not finite")
+    assert err.startswith("jaxquat: error: ") and "\r" not in err
+
+
+def test_no_progress_bar_in_a_log_file_from_a_real_process(tmp_path):
+    log = tmp_path / "log.txt"
+    command = [sys.executable, "-m", "jaxquat", "simulate", "--bodies", "4", "--steps", "3"]
+    command += ["--dt", "1e30", "--omega-scale", "1e10", "--output", str(tmp_path / "run")]
+    with open(log, "w") as stderr:
+        status = subprocess.run(command, stderr=stderr, stdout=subprocess.DEVNULL, timeout=300)
+    text = log.read_text()
+    assert status.returncode == 2, text
+    assert text.startswith("jaxquat: error: ") and text.count("\n") == 1 and "\r" not in text
+
+
+def test_show_progress_only_on_a_terminal(monkeypatch):
+    from jaxquat import _cli
+
+    class Terminal:
+        def isatty(self):
+            return True
+
+    monkeypatch.setattr(sys, "stderr", Terminal())
+    assert _cli._show_progress(False) and not _cli._show_progress(True)
+    monkeypatch.setattr(sys, "stderr", open(os.devnull, "w"))  # noqa: SIM115 (closed below)
+    try:
+        assert not _cli._show_progress(False)
+    finally:
+        sys.stderr.close()
+
+
+def test_simulate_says_it_replaced_a_previous_ensemble(tmp_path, capsys):
+    status, out, err = _run(_simulate(tmp_path), capsys)
+    assert status == 0 and "the ensemble that was in" not in out, err
+    status, out, err = _run(_simulate(tmp_path), capsys)
+    assert status == 0, err
+    replaced = [line.split() for line in out.splitlines() if line.split()[0] == "replaced"]
+    assert replaced == [["replaced", "the", "ensemble", "that", "was", "in", f"{tmp_path}/run/"]]
+    status, out, err = _run(["simulate", "--help"], capsys)
+    assert "replaced" in " ".join(out.split())
+
+
+def test_simulate_output_with_a_trailing_slash_is_printed_once(tmp_path, capsys):
+    status, out, err = _run(_simulate(tmp_path)[:-1] + [f"{tmp_path / 'run'}/"], capsys)
+    assert status == 0, err
+    assert f"{tmp_path / 'run'}/ (" in out and "//" not in out
+
+
+def test_simulate_index_records_every_option_of_the_run(tmp_path, capsys):
+    options = ["--seed", "7", "--omega-mean", "0.5,-1,2", "--omega-scale", "0.25"]
+    options += ["--inertia", "1,2,3", "--dt", "0.002", "--save-every", "3", "--chunk-size", "3"]
+    status, out, err = _run(_simulate(tmp_path, *options, "--no-statistics"), capsys)
+    assert status == 0, err
+    run = load_ensemble(tmp_path / "run")["metadata"]["run"]
+    expected = dict(bodies=4, steps=3, dt=0.002, seed=7, omega_mean=[0.5, -1.0, 2.0])
+    expected.update(omega_scale=0.25, inertia=[1.0, 2.0, 3.0], dtype="float32", save_every=3)
+    expected.update(chunk_size=3, statistics=False, method="cf4", frame="body")
+    assert {key: run[key] for key in expected} == expected
+    assert run["jaxquat_version"] == jaxquat.__version__
+    # The same options reproduce the run.
+    first = load_ensemble(tmp_path / "run")["final"]
+    status, out, err = _run(_simulate(tmp_path / "again", *options, "--no-statistics"), capsys)
+    assert status == 0, err
+    np.testing.assert_array_equal(load_ensemble(tmp_path / "again" / "run")["final"], first)
+
+
+def test_the_same_seed_draws_the_same_bodies_in_both_dtypes(tmp_path, capsys):
+    """jax.random draws other numbers in float32 and float64: at seed 0 the two dtypes simulated
+    different ensembles (median turn 94° against 106°), so their accuracy could not be compared. The
+    draws are now made in float32 and cast; the float64 initial states are unit to round-off."""
+    finals = {}
+    for dtype in ("float32", "float64"):
+        options = ["--seed", "3", "--omega-scale", "2", "--dtype", dtype, "--save-every", "3"]
+        status, out, err = _run(_simulate(tmp_path / dtype, *options), capsys)
+        assert status == 0, err
+        finals[dtype] = load_ensemble(tmp_path / dtype / "run")
+    q32, q64 = (np.asarray(finals[d]["states"], np.float64) for d in ("float32", "float64"))
+    np.testing.assert_allclose(q64, q32, atol=2e-6)
+    np.testing.assert_allclose(np.linalg.norm(q64[0], axis=-1), 1.0, atol=1e-15)
+
+
+def test_load_ensemble_reads_a_directory_without_run_metadata(tmp_path):
+    q0 = jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (2, 1))
+    simulate_ensemble(q0, jnp.ones((2, 3)), 0.1, 2, path=tmp_path / "old")
+    assert "run" not in load_ensemble(tmp_path / "old")["metadata"]
+    with pytest.raises(ValueError, match="`metadata`"):
+        simulate_ensemble(q0, jnp.ones((2, 3)), 0.1, 2, metadata={"x": object()})
+
+
+@pytest.mark.parametrize(
+    "text, fragments",
+    [
+        ("[simulate]\nbodies = 4\n\n[extra]\nx = 1\n", ["conf.toml line 4", "table [extra]"]),
+        ("[extra]\nx = 1\n[simulate]\nbodies = 4\n", ["conf.toml line 1", "table [extra]"]),
+        ("[simulat]\nbodies = 4\n", ["conf.toml line 1", "unknown table [simulat]"]),
+        ("# options\nsimulat.bodies = 4\n", ["conf.toml line 2", "unknown table [simulat]"]),
+        ("steps = 3\n[simulate]\nbodies = 4\n", ["conf.toml line 1", "'steps' outside [simulate]"]),
+    ],
+)
+def test_toml_tables_are_named_with_their_line(tmp_path, capsys, text, fragments):
+    """`[simulate]` beside another table gave "unknown key 'simulate'"; `[simulat]` had no line."""
+    config = tmp_path / "conf.toml"
+    config.write_text(text)
+    status, out, err = _run(
+        ["simulate", "--config", config, "--no-progress", "--output", tmp_path / "run"], capsys
+    )
+    _assert_one_line_error(status, out, err, *fragments)
+    assert "'simulate'" not in err
+
+
+def test_fit_refuses_a_file_too_large_for_the_memory(tmp_path, capsys, monkeypatch):
+    """1,000,000 rows took 2.0 GB; a 1 GiB CSV (~15 million rows) more than the machine had, and the
+    kernel killed the process without a word."""
+    from jaxquat import _cli
+
+    assert _cli.fit_memory_needed(1_000_000) >= 2.0e9
+    assert _cli.fit_memory_needed(15_000_000) > 20e9
+    assert _cli.fit_memory_needed(200_000, "piecewise_linear") >= 1.42e9
+    _cli.check_fit_memory(1_000_000, 3 * 2**30, "f.csv")  # fits
+    _cli.check_fit_memory(10**9, None, "f.csv")  # unknown: no check
+    with pytest.raises(_cli.CommandLineError, match="out of memory .*fitting f.csv"):
+        _cli.check_fit_memory(15_000_000, 16 * 2**30, "f.csv")
+    times, qs = _observations(10)
+    path = _write(tmp_path / "obs.csv", _csv_lines(times, qs))
+    monkeypatch.setattr(_cli, "_memory_available", lambda: _cli.fit_memory_needed(10) - 1)
+    status, out, err = _run(["fit", path], capsys)
+    _assert_one_line_error(status, out, err, "jaxquat: error: out of memory", f"fitting {path}")
+    monkeypatch.setattr(_cli, "_memory_available", lambda: _cli.fit_memory_needed(10))
+    status, out, err = _run(["fit", path], capsys)
+    assert status == 0, err
+
+
+def test_memory_available_reads_proc_meminfo():
+    from jaxquat import _cli
+
+    available = _cli._memory_available()
+    assert available is None or available > 0
+
+
+def test_version_prints_the_version(capsys):
+    status, out, err = _run(["--version"], capsys)
+    assert status == 0 and out == f"jaxquat {jaxquat.__version__}\n", (out, err)
+
+
+def test_fit_reads_a_csv_written_by_r(tmp_path, capsys):
+    """R's write.csv quotes the header (and some write numbers quoted)."""
+    times, qs = _observations(20)
+    lines = [",".join(f'"{v}"' for v in line.split(",")) for line in _csv_lines(times, qs)]
+    path = tmp_path / "r.csv"
+    path.write_text('"t","w","x","y","z"\n' + "\n".join(lines[:10] + _csv_lines(times, qs)[10:]))
+    status, out, err = _run(["fit", path, "--json"], capsys)
+    assert status == 0, err
+    np.testing.assert_allclose(json.loads(out)["omega"], OMEGA, atol=1e-6)
+
+
+def test_broken_pipe_exits_quietly(tmp_path, capsys, monkeypatch):
+    """`jaxquat fit f.csv | head -0` printed "jaxquat: error: Broken pipe"."""
+    times, qs = _observations(10)
+    path = _write(tmp_path / "obs.csv", _csv_lines(times, qs))
+
+    class Gone:
+        def write(self, text):
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def flush(self):
+            pass
+
+    monkeypatch.setattr(sys, "stdout", Gone())
+    status, _, err = _run(["fit", path], capsys)
+    assert status == 141 and err == "", err
+
+
+def test_bench_relaunch_keeps_the_options_before_bench(monkeypatch, capsys):
+    """The relaunch with huge pages ran `-m jaxquat bench …`, dropping `--distributed`."""
+    calls = []
+    fake = types.ModuleType("jaxquat._bench")
+    fake.relaunch_with_huge_pages = lambda command: calls.append(list(command))
+    fake.main = lambda argv: 0
+    monkeypatch.setitem(sys.modules, "jaxquat._bench", fake)
+    monkeypatch.setattr("jax.distributed.initialize", lambda: calls.append("initialize"))
+    from jaxquat import _cli
+
+    args = _cli._build_parser().parse_args(["--distributed", "bench"])
+    args.bench_args, args.global_args, args.from_command_line = ["--quiet"], ["--distributed"], True
+    assert _cli._cmd_bench(args) == 0
+    assert calls == [["-m", "jaxquat", "--distributed", "bench", "--quiet"], "initialize"]
