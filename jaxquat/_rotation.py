@@ -109,6 +109,12 @@ def to_axis_angle(q: ArrayLike) -> tuple[Array, Array]:
     `q` need not be unit (any finite nonzero magnitude). At the identity the axis is undefined and
     `(1, 0, 0)` is returned. A NaN anywhere in `q`, q = 0 or an infinite component gives NaN axis and
     angle.
+
+    **Gradient:** smooth for angles in (0, π). The angle is a cone 2|v|/|w| at the identity, where
+    its gradient is 0 (the safe norm's choice, no NaN) and the axis's is 0 too. At a half-turn
+    (w = 0) q and −q meet, and the derivative is that of the w ≥ 0 side: ∂angle/∂w = −2/|v| (where
+    `angle_between` takes 0 instead); for a smooth angle near π use `to_rotvec` away from w = 0 or
+    a sign-invariant loss.
     """
     q = prescale(check_trailing(q, 4, "q"))[0]
     undefined = _undefined(q)
@@ -146,6 +152,8 @@ def to_rotvec(q: ArrayLike) -> Array:
     magnitude; q = 0 or an infinite component gives NaN).
 
     r = 2·atan2(|v|, |w|)·sgn(w) v/|v|. Series-switched at the identity: value 0, Jacobian [0 | 2·I₃].
+    At a half-turn (w = 0) r jumps to −r across w = 0 (|r| = π both sides), and the Jacobian there is
+    that of the w ≥ 0 side, finite.
     """
     q = prescale(check_trailing(q, 4, "q"))[0]
     undefined = _undefined(q)

@@ -19,6 +19,11 @@ States: a quaternion array `q` of shape `(..., 4)`, or a tuple whose first eleme
 quaternion, e.g. `(q, x)` with `x` any PyTree of arrays (angular velocity, position, ...). The Lie method
 acts on `q`, the matching Runge–Kutta scheme on every other leaf. (The first-element rule also covers
 the augmented state of `diffrax.BacksolveAdjoint`, so RK-type jaxquat solvers work under it.)
+
+Derivatives: reverse mode (`jax.grad`, `jax.jacrev`) through `diffrax.diffeqsolve` with diffrax's
+default `RecursiveCheckpointAdjoint`; forward mode (`jax.jacfwd`, `jax.jvp`) needs
+`adjoint=diffrax.ForwardMode()` (the default adjoint is a `custom_vjp`, which JAX cannot push
+tangents through). Both give the same derivatives.
 """
 
 from __future__ import annotations
