@@ -63,10 +63,16 @@ class _Once(argparse.Action):
         if self.dest in given:
             previous = getattr(namespace, self.dest)
             raise argparse.ArgumentError(
-                self, f"may be given only once, got {previous!r} and then {values!r}"
+                self,
+                f"may be given only once, got {_plain(previous)!r} and then {_plain(values)!r}",
             )
         given.add(self.dest)
         setattr(namespace, self.dest, values)
+
+
+def _plain(value):
+    """A path as its text (the message showed `PosixPath('/a')`); anything else as it is."""
+    return str(value) if isinstance(value, os.PathLike) else value
 
 
 # ----------------------------------------------------------------------------------------------------

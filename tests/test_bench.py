@@ -157,6 +157,51 @@ def test_bad_arguments_exit_with_an_error_code(tmp_path, capsys):
     assert "W9" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    "argv, fragment",
+    [
+        (["--steps", "99999999999999999999999"], "up to 2,147,483,647"),  # was a failed row, exit 0
+        (["--sizes", "2,2"], "lists a value twice"),  # every row ran and was reported twice
+        (["--dtypes", "float64,float64"], "lists a dtype twice"),
+        (["--workloads", "W1,w1"], "lists a workload twice"),
+        (["--output", ""], "must name a directory"),  # Path("") wrote into the working directory
+    ],
+)
+def test_bad_option_values_are_one_line_errors(tmp_path, capsys, argv, fragment):
+    output = [] if "--output" in argv else ["--output", str(tmp_path)]
+    assert _bench.main([*argv, *output]) == 2
+    err = capsys.readouterr().err
+    assert fragment in err and err.count("\n") == 1, err
+
+
+def test_a_jaxquat_crash_fails_the_run(tmp_path, monkeypatch, capsys):
+    """A jaxquat contender that raised was reported as "failed" in the table and the run exited 0, so
+    a broken `integrate` passed a CI that runs the bench."""
+
+    def broken(problem, steps):
+        raise RuntimeError("integrate is broken")
+
+    contenders = tuple(
+        dataclasses.replace(c, make=broken) if c.role == "jaxquat" else c for c in _bench.CONTENDERS
+    )
+    monkeypatch.setattr(_bench, "CONTENDERS", contenders)
+    argv = ["--workloads", "W1", "--sizes", "3", "--steps", "4", "--repeats", "1", "--quiet"]
+    assert _bench.main([*argv, "--dtypes", "float64", "--output", str(tmp_path)]) == 1
+    assert "jaxquat failed or gave wrong answers in: W1 float64 N=3" in capsys.readouterr().err
+
+
+def test_numpy_quaternion_gets_a_plain_numpy_coning_omega():
+    """numpy-quaternion's W4 integrator calls ω from Python per stage; it now gets the same ω as plain
+    NumPy arithmetic (the generic array helpers cost it ~45× more per call than the formula)."""
+    for t in (0.0, 0.37, 2.0, 6.3, -1.1):
+        np.testing.assert_allclose(
+            _bench.coning_omega_scalar(t),
+            _bench.coning_omega(np.float64(t), np),
+            rtol=0,
+            atol=1e-15,
+        )
+
+
 def test_user_budget_also_holds_for_w2(tmp_path):
     # The quick preset lets W2 peers run all T steps within 2 s; an explicit --budget replaces that.
     argv = ["--workloads", "W1", "--sizes", "3", "--steps", "4", "--repeats", "1", "--quiet"]
