@@ -191,16 +191,25 @@ def principal_axes(inertia: ArrayLike) -> tuple[Array, Array]:
     So `rotate(e_k, q)` is the k-th principal axis, and a body whose orientation is `q_world` with this
     inertia in body coordinates has orientation `multiply(q_world, q)` with the inertia `moments`.
 
-    The axes are defined up to sign (q is one of the four proper choices) and are not unique for equal
-    moments; the gradient through q is then undefined (the eigenvector gradient divides by the gap).
+    The axes are defined up to sign; q is the proper choice whose first two axes have their largest
+    component positive, so q is continuous in the inertia (and its derivative that of the values
+    nearby) wherever those components and the moments are distinct: a diagonal inertia with distinct
+    moments in ascending order gives the identity, and small changes keep q near it. q jumps where
+    an axis's two largest components swap, and between q and −q where w crosses 0 (a rotation near a
+    half-turn; the same rotation). For equal moments the axes are not unique and the gradient through
+    q is undefined (the eigenvector gradient divides by the gap).
     """
     inertia = check_matrix(inertia, "inertia")
     inertia = _check_inertia(inertia, "inertia", semidefinite=True)
     moments, axes = jnp.linalg.eigh(at_least_float32(inertia))  # (no half-precision eigh)
-    # Make the frame right-handed by flipping the last axis where needed.
-    det = jnp.linalg.det(axes)
-    flip = jnp.where(det < 0, -1.0, 1.0).astype(axes.dtype)
-    axes = axes.at[..., :, 2].multiply(flip[..., None])
+    # eigh's signs are LAPACK's whim: for a diagonal inertia an off-diagonal change of 1e-7 turned
+    # q from the identity to a half-turn. Each of the first two axes is signed so that its largest
+    # component is positive (continuous wherever that component is unique), the third completes a
+    # right-handed frame.
+    largest = jnp.argmax(jnp.abs(axes), axis=-2, keepdims=True)
+    sign = jnp.where(jnp.take_along_axis(axes, largest, axis=-2) < 0, -1.0, 1.0)
+    axes = axes * sign.astype(axes.dtype)
+    axes = axes.at[..., :, 2].set(cross(axes[..., :, 0], axes[..., :, 1]))
     return moments.astype(inertia.dtype), from_matrix(axes).astype(inertia.dtype)
 
 

@@ -49,6 +49,7 @@ from ._numerics import (
     check_choice,
     check_frame,
     check_trailing,
+    is_tracer,
     safe_norm,
     sum_squares,
 )
@@ -82,7 +83,8 @@ class EnsembleResult(eqx.Module):
     - `saved`: states every `save_every` steps, time-major `(num_saved, *batch, 4)` including the
       initial state; `None` when nothing was saved or the states were streamed to `path`.
     - `saved_omega`: for a rigid-body ensemble, ω at the same times, `(num_saved, *batch, 3)`.
-    - `times`: the times of the saved states, `(num_saved,)` (NumPy float64), or `None`.
+    - `times`: the times of the saved states, `(num_saved,)` (NumPy float64; a JAX array when `dt`
+      or `t0` is traced), or `None`.
     - `angle_from_start`: the angle between each body's initial and final orientation, in `[0, π]`.
     - `total_angle`: with `statistics=True`, each body's accumulated rotation angle
       Σₖ angle(q_k, q_{k+1}) over all steps (for constant ω: |ω|·T), else `None`.
@@ -803,7 +805,14 @@ def _check_positive_int(value, name: str, *, allow_zero: bool = False) -> int:
 
 
 def _check_real_scalar(value, name: str) -> None:
-    """A finite real scalar (Python, NumPy or JAX number; not a bool or a string)."""
+    """A finite real scalar (Python, NumPy or JAX number; not a bool or a string). A traced one
+    (under jax.jit or a derivative) is checked for its shape and dtype only."""
+    if is_tracer(value):
+        if value.ndim != 0 or not jnp.issubdtype(value.dtype, jnp.floating):
+            raise ValueError(
+                f"`{name}` must be a real scalar; got a traced {value.dtype} of shape {value.shape}."
+            )
+        return
     try:
         array = np.asarray(value)
     except Exception:  # noqa: BLE001 (a tracer or an exotic object: checked below)
@@ -1167,7 +1176,18 @@ def simulate_ensemble(
     config = tuple(sorted(config.items()))
 
     saved_steps = list(range(0, num_steps + 1, save_every)) if save_every else []
-    times = float(t0) + float(dt) * np.asarray(saved_steps, np.float64) if save_every else None
+    traced_time = is_tracer(dt) or is_tracer(t0)  # (under jax.grad / jit: no float() of them)
+    if not save_every:
+        times = None
+    elif traced_time:
+        times = t0 + dt * jnp.asarray(saved_steps, jnp.result_type(dt, t0))
+    else:
+        times = float(t0) + float(dt) * np.asarray(saved_steps, np.float64)
+    if path is not None and traced_time:
+        raise ValueError(
+            "`path`: a run whose `dt` or `t0` is traced (under jax.jit or a derivative) cannot be "
+            "written to disk; pass path=None and keep the result in memory."
+        )
     writer = None
     if path is not None and jax.process_index() == 0:
         index_metadata = dict(

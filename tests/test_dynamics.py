@@ -535,6 +535,30 @@ def test_principal_axes(getkey):
         )
 
 
+@pytest.mark.parametrize("moments", [(1.0, 1.7, 2.4), (2.4, 1.7, 1.0)])
+def test_principal_axes_quaternion_is_continuous_at_a_diagonal_inertia(moments):
+    """eigh's arbitrary signs made q jump: diag(1, 1.7, 2.4) gave the identity, and 1e-7 added to one
+    off-diagonal entry a half-turn about y, with a derivative that matched neither. Now q moves by
+    O(perturbation) and jacfwd = jacrev = central differences at the diagonal itself."""
+
+    def q_of(a):
+        return jq.principal_axes(0.5 * (a + a.T))[1]
+
+    diagonal = jnp.diag(jnp.asarray(moments))
+    q = q_of(diagonal)
+    for i, j in ((0, 1), (0, 2), (1, 2)):
+        for delta in (1e-7, -1e-5):
+            nearby = q_of(diagonal.at[i, j].add(delta))
+            assert float(jnp.max(jnp.abs(nearby - q))) < 10 * abs(delta)
+    forward = jax.jacfwd(q_of)(diagonal)
+    np.testing.assert_allclose(jax.jacrev(q_of)(diagonal), forward, atol=1e-14)
+    h = 1e-6
+    for i, j in ((0, 1), (0, 2), (1, 2), (2, 2)):
+        step = jnp.zeros((3, 3)).at[i, j].set(h)
+        central = (q_of(diagonal + step) - q_of(diagonal - step)) / (2 * h)
+        np.testing.assert_allclose(forward[:, i, j], central, atol=1e-8)
+
+
 def test_principal_axes_of_a_rod():
     """Points on one line have a singular (semidefinite) inertia whose principal axes exist: the line,
     moment 0, and any two perpendicular axes. Its rounding residue (a moment of -2e-16) was refused as
