@@ -22,7 +22,7 @@ import re
 import sys
 import time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
 
 _PROG = "jaxquat"
@@ -407,28 +407,25 @@ def _read_simulate_toml(path: str) -> tuple[dict[str, Any], dict[str, str]]:
         here — so a line that is named is never the wrong one. A file with a multi-line string or an
         escape in a key is named alone: a `bodies = 10` line inside a string, with the key set as
         "bod\\u0069es" on another line, was named as the line setting it."""
-        lines = _lines(text)
-        if '"""' in text or "'''" in text or any("\\" in line.split("=", 1)[0] for line in lines):
+        if any("\\" in line.split("=", 1)[0] for line in _lines(text)):
             return path
         names = {key, f"simulate.{key}"}
-        numbers = [
-            number
-            for number, line in enumerate(lines, start=1)
-            if "=" in line and line.split("=", 1)[0].strip().strip("\"'") in names
-        ]
-        return f"{path} line {numbers[0]}" if len(numbers) == 1 else path
+        return _line_where(
+            text,
+            path,
+            lambda line: "=" in line and line.split("=", 1)[0].strip().strip("\"'") in names,
+        )
 
     config: dict[str, Any] = {}
     sources: dict[str, str] = {}
     for key, value in table.items():
-        if key not in _SIMULATE_KEYS and isinstance(value, dict):  # `[simulat]`: a misspelt table
-            known = ", ".join(sorted(_SIMULATE_KEYS))
-            raise CommandLineError(
-                f"{_table_where(text, path, key)}: unknown table [{key}] (expected [simulate] or "
-                f"top-level keys: {known})"
-            )
         if key not in _SIMULATE_KEYS:
             known = ", ".join(sorted(_SIMULATE_KEYS))
+            if isinstance(value, dict):  # `[simulat]`: a misspelt table
+                raise CommandLineError(
+                    f"{_table_where(text, path, key)}: unknown table [{key}] (expected [simulate] "
+                    f"or top-level keys: {known})"
+                )
             raise CommandLineError(f"{where(key)}: unknown key {key!r} (known: {known})")
         parse = _SIMULATE_KEYS[key]
         if parse is bool:
@@ -476,11 +473,17 @@ def _table_where(text: str, path: str, name: str) -> str:
     """The file and the line opening the table or key `name` (`[name]`, `[name.x]`, `[[name]]`,
     `name = {…}`, `name.x = …`, the name quoted or not) when exactly one line plainly does; else the
     file alone (as `where` in `_read_simulate_toml`: never a wrong line)."""
-    if '"""' in text or "'''" in text:
-        return path
     quoted = rf"""(?:{re.escape(name)}|"{re.escape(name)}"|'{re.escape(name)}')"""
     opening = re.compile(rf"\s*(?:\[\[?\s*{quoted}\s*[\].]|{quoted}\s*[.=])")
-    numbers = [number for number, line in enumerate(_lines(text), start=1) if opening.match(line)]
+    return _line_where(text, path, opening.match)
+
+
+def _line_where(text: str, path: str, matches: Callable[[str], Any]) -> str:
+    """`"path line N"` when exactly one line of `text` `matches`, else `path` alone; also alone when
+    the text holds a multi-line string, whose lines could look like settings."""
+    if '"""' in text or "'''" in text:
+        return path
+    numbers = [number for number, line in enumerate(_lines(text), start=1) if matches(line)]
     return f"{path} line {numbers[0]}" if len(numbers) == 1 else path
 
 

@@ -815,7 +815,7 @@ def _check_real_scalar(value, name: str) -> None:
         return
     try:
         array = np.asarray(value)
-    except Exception:  # noqa: BLE001 (a tracer or an exotic object: checked below)
+    except Exception:  # noqa: BLE001 (an exotic object: refused below)
         array = None
     if (
         array is None
@@ -995,7 +995,7 @@ def simulate_ensemble(
     `inertia`, `torque`, `frame`, `method`, `save_every`, `chunk_size`, `statistics`, `progress`,
     `metadata` (not a JSON-serialisable dict), `path` (not a str or os.PathLike; a file; a
     non-empty directory that is not a jaxquat ensemble, or one whose index.json is unreadable or
-    malformed) or `devices` (not a non-empty sequence of
+    malformed; a run whose `dt` or `t0` is traced) or `devices` (not a non-empty sequence of
     distinct `jax.Device`s); for an `omega(t, q)` of the wrong shape; and, as in `integrate`, for a
     q-dependent `omega` with a Magnus method.
 
