@@ -37,9 +37,11 @@ from ._integrate import (
     LIE_METHODS,
     METHODS,
     Sampled,
+    _act,
     _check_magnus_omega,
     _compensated_step,
     _eps_of,
+    _rotation_minus_one,
     lie_step,
     scan_steps,
 )
@@ -53,7 +55,7 @@ from ._numerics import (
     safe_norm,
     sum_squares,
 )
-from ._rotation import rotate_unchecked, to_rotvec
+from ._rotation import from_rotvec, rotate_unchecked, to_rotvec
 
 _BODY_AXIS = "bodies"
 _FORMAT = "jaxquat-ensemble"
@@ -127,8 +129,11 @@ def _to_world(omega_body: Array, q: Array) -> Array:
 
 
 def _angle_between(p: Array, q: Array) -> Array:
-    """Geodesic angle in [0, π] between unit quaternions (sign-invariant, accurate for tiny angles)."""
-    return safe_norm(to_rotvec(multiply(conjugate(p), q)))
+    """Geodesic angle in [0, π] between unit quaternions (sign-invariant, accurate for tiny angles):
+    2 atan2(|vec r|, |w(r)|) of r = p* ⊗ q, the norm of `to_rotvec(r)` without forming the vector
+    (a third of the cost; it is taken every step with `statistics=True`). Derivative 0 at p = ±q."""
+    relative = multiply(conjugate(p), q)
+    return 2.0 * jnp.arctan2(safe_norm(relative[..., 1:]), jnp.abs(relative[..., 0]))
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -250,11 +255,24 @@ def _kinematic_step_fn(config, omega_fn, omega, dt, t0, q_start, offset):
     def field(t, q, x):
         return jnp.broadcast_to(source(t, q), q.shape[:-1] + (3,)), None
 
+    # A constant ω's Lie–Euler step is the same rotation every step: made once per chunk, outside
+    # the loop, with the arithmetic of `lie_step` / `_compensated_step` (ω is per body, as q).
+    hoisted = None
+    if omega_fn is None and method == "euler":
+        phi = jnp.asarray(dt).astype(omega.dtype) * omega
+        hoisted = _rotation_minus_one(phi) if config["compensated"] else from_rotvec(phi)
+
     def step_fn(k, carry):
         q, c, stats = carry
         index = offset + k
         t = t0 + index.astype(t0.dtype) * dt
-        if config["compensated"]:
+        if hoisted is not None and config["compensated"]:
+            y = _act(q, hoisted, frame) - c
+            q_next = q + y
+            c = (q_next - q) - y
+        elif hoisted is not None:
+            q_next = _act(q, hoisted, frame)
+        elif config["compensated"]:
             q_next, c = _compensated_step(method, field, t, q, c, dt, frame)
         else:
             q_next, _ = lie_step(method, field, t, q, None, dt, frame=frame)

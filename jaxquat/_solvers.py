@@ -377,7 +377,8 @@ class LiePolynomialInterpolation(diffrax.AbstractLocalInterpolation):
     output is its dense output). Cubic elsewhere: Lie-algebra Hermite interpolation when $V'(0)$,
     $V'(1) = \mathrm{dexp}^{-1}_{V(1)}(u_1)$ are known (`LieEuler`, `ExpMidpoint`, `CF4`), the geodesic
     $V(s) = sV(1)$ for `NormalizedEuler`, and the Magnus interpolant for `Magnus4/6/8`.
-    $|q(s)| = |q_0|$ for every $s$.
+    $|q(s)| = 1$ for every $s$: $q_0$ is the step's initial quaternion normalised (jaxquat's solvers
+    keep q on the unit sphere; a non-unit initial state is normalised by the first step).
     """
 
     t0: Any
@@ -444,7 +445,10 @@ def _tsit5_dense_coefficients() -> tuple[tuple[float, ...], ...]:
 
 
 def _dense_info(y0, treedef, qc, xcs):
-    return dict(y0=y0, coeffs=_join(treedef, qc, xcs))
+    """The interpolation's fields; its base is the unit q0, so that the dense output ends on the
+    step's unit q1 (a non-unit q0 is normalised by the first step)."""
+    q0, x0, _ = _state_split(y0, "the solver")
+    return dict(y0=_join(treedef, _unit(q0), x0), coeffs=_join(treedef, qc, xcs))
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -501,7 +505,12 @@ class _RKMK(diffrax.AbstractSolver):
         h = t1 - t0
         f = _first_stage(terms, t0, y0, args, solver_state, made_jump)
         dq, dxs = _apply_control(terms, f, control, treedef)
+        # u0 is recovered against the q that f was evaluated at; the stages start from the unit q0.
+        # A non-unit q0 (the first step only: every step ends on the unit sphere) otherwise reached
+        # the last stage with |q| = |q0|, whose first-same-as-last value, recovered in the next step
+        # against the unit q1, scaled its rotation by |q0| (RKMK45, |q0| = 1 + 1e-6: 1e-8 off).
         u0 = _increment(dq, q0)
+        q0 = _unit(q0)
         big_k = [u0]  # dexp⁻¹-corrected stage increments in the Lie algebra
         small_k = [dxs]  # stage increments of the other leaves
         q_stage, x_stage = q0, x0
@@ -797,8 +806,7 @@ class _Magnus(diffrax.AbstractSolver):
             x1.append(x + jnp.sum(xc, axis=0))
             xcs.append(xc)
         y1 = _join(treedef, q1, x1)
-        dense_info = dict(y0=y0, coeffs=_join(treedef, qc, xcs))
-        return y1, None, dense_info, None, diffrax.RESULTS.successful
+        return y1, None, _dense_info(y0, treedef, qc, xcs), None, diffrax.RESULTS.successful
 
 
 class Magnus4(_Magnus):
@@ -862,8 +870,7 @@ class Magnus4(_Magnus):
             x1.append(x + k_mean)
             xcs.append(jnp.stack([k_mean - 0.5 * k_slope, 0.5 * k_slope, jnp.zeros_like(k_mean)]))
         y1 = _join(treedef, q1, x1)
-        dense_info = dict(y0=y0, coeffs=_join(treedef, qc, xcs))
-        return y1, None, dense_info, None, diffrax.RESULTS.successful
+        return y1, None, _dense_info(y0, treedef, qc, xcs), None, diffrax.RESULTS.successful
 
 
 class Magnus6(_Magnus):
@@ -981,7 +988,12 @@ class NormalizedEuler(diffrax.AbstractSolver):
     instead of θ per step). Other leaves of a tuple state `(q, x)` take a plain Euler step.
 
     Dense output: the geodesic $q(s) = \exp(sU) ⊗ q_n$, $\exp(U) ⊗ q_n = q_{n+1}$ — exactly the
-    constant-ω motion within a step of the seed's scheme; other leaves linear.
+    constant-ω motion within a step of the seed's scheme while $|ω|Δt < π$; other leaves linear.
+    Past π the steps are still the exact rotations (as $-\exp(ωΔt) ⊗ q_n$, docs/numerics.md §1), but
+    the corrected rate, $\tan(|ω|Δt/2)$ along ω, no longer tells which way the body turned, and the
+    geodesic turns the short way: backwards by $2π − |ω|Δt$ (3.1 rad off mid-step at
+    $|ω|Δt = 3.5$). For dense output of such steps use `LieEuler` with `kinematic_vector_field`
+    (exact for constant ω at any step).
 
     ??? cite "Reference"
 

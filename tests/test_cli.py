@@ -193,7 +193,20 @@ def test_bench_passes_the_quick_preset(monkeypatch, capsys):
     monkeypatch.setattr(jaxquat, "_bench", fake, raising=False)
     status, _, err = _run(["bench", "--workloads", "W1"], capsys)
     assert status == 0, err
-    assert calls == [["--preset", "quick", "--workloads", "W1"]]
+    assert calls == [["--workloads", "W1"]]
+    # A --preset of the user's reaches the suite once (a review: the command put "--preset quick"
+    # first, so every --preset, quick included, was a "given only once" error).
+    for preset in ["quick", "full", "micro"]:
+        status, _, err = _run(["bench", "--preset", preset, "--output", "out"], capsys)
+        assert status == 0, err
+        assert calls[-1] == ["--preset", preset, "--output", "out"]
+
+
+def test_bench_without_a_preset_runs_the_quick_one():
+    from jaxquat import _bench
+
+    assert _bench._parse([]).preset == "quick"
+    assert _bench._parse(["--preset", "micro"]).preset == "micro"
 
 
 def test_help_exits_0(capsys):
