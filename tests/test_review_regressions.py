@@ -52,6 +52,26 @@ def test_angular_velocity_reports_the_dt_shape_given():
         jq.angular_velocity(jnp.ones((5, 2, 4)), jnp.ones(3))
 
 
+@pytest.mark.parametrize(
+    ("dt", "message"),
+    [
+        (0.0, r"`dt` must be finite and non-zero; got 0\.0\.$"),
+        (np.nan, r"got nan\.$"),
+        (np.inf, r"got inf\.$"),
+        (np.array([0.1, 0.1, -np.inf, 0.1]), r"got -inf at index \(2,\)\.$"),
+    ],
+)
+def test_angular_velocity_refuses_a_zero_or_non_finite_dt(dt, message):
+    """ω = rotation/Δt: Δt = 0 gave (nan, nan, inf) and an infinite Δt a plausible ω = 0, silently
+    (a review; `integrate` refuses these). A negative Δt is a backward trajectory and stays valid."""
+    qs = jq.integrate(jq.identity(), jnp.array([0.0, 0.0, 1.0]), 0.1, 4)
+    with pytest.raises(ValueError, match=message):
+        jq.angular_velocity(qs, dt)
+    np.testing.assert_allclose(
+        jq.angular_velocity(qs, -0.1), np.tile([0.0, 0.0, -1.0], (4, 1)), atol=1e-6
+    )
+
+
 @pytest.mark.parametrize("seq", ["zxz", "ZXZ", "xyx", "YZY"])
 def test_float32_gimbal_lock_at_pi_follows_scipys_rule(seq):
     angles = np.array([0.3, np.pi, 0.7])
