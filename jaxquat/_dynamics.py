@@ -420,7 +420,7 @@ def simulate_rigid_body(
     are not conserved exactly (classical Runge–Kutta for ω is not a symplectic or energy-preserving
     method): their errors drift, linearly in time and like Δt⁵ (for I = (1, 2, 3) and
     ω₀ = (1.1, 0, 0.8) rad/s the relative energy error after 1,000 s is −4.3e-7 at Δt = 0.05 s and
-    32× less at Δt = 0.025 s; round-off, ~1e-14, over 10⁵ steps of 1e-3 s). For very long horizons
+    32× less at Δt = 0.025 s; round-off, ~1e-13, over 10⁵ steps of 1e-3 s). For very long horizons
     use a smaller step, or diffrax with `rigid_body_vector_field` and a tolerance.
 
     **Arguments:**
