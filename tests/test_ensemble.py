@@ -81,6 +81,48 @@ def test_constant_omega_step_made_once_is_the_per_step_one(getkey, dtype, frame)
     np.testing.assert_allclose(made_once.total_angle, every_step.total_angle, rtol=rtol)
 
 
+def test_statistics_near_a_half_turn_and_their_derivatives():
+    """The farthest angle is kept as (|vec r|², |w(r)|) of r = q_start* ⊗ q and turned into an angle
+    once, by atan2: exact near π too, where an angle from sin²(θ/2) alone would lose half its digits.
+    Bodies turning by 0.1 rad a step reach 3.1 rad (step 31), one reaches π − 1e-9 exactly at its
+    last step; one is at rest. The statistics are differentiable, without NaN at rest (the angles'
+    |vec r| = 0 there), and match central differences."""
+    dt, steps = 0.1, 40
+    speeds = np.array([1.0, (np.pi - 1e-9) / (dt * steps), 0.0])
+    axes = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [1.0, 0.0, 0.0]])
+    q0 = random_unit(jax.random.key(3), (3,))
+    result = simulate_ensemble(q0, speeds[:, None] * axes, dt, steps, statistics=True)
+    turn = np.mod(speeds[:, None] * dt * np.arange(1, steps + 1), 2 * np.pi)
+    farthest = np.max(np.minimum(turn, 2 * np.pi - turn), axis=1)
+    np.testing.assert_allclose(result.max_angle_from_start, farthest, rtol=0, atol=2e-13)
+    np.testing.assert_allclose(result.total_angle, speeds * dt * steps, rtol=1e-12, atol=1e-300)
+
+    def statistics(omega):
+        run = simulate_ensemble(q0, omega, dt, 12, statistics=True)
+        return jnp.sum(run.total_angle) + jnp.sum(run.max_angle_from_start)
+
+    omega = jnp.asarray(0.5 * axes)
+    omega = omega.at[2].set(0.0)
+    gradient = jax.grad(statistics)(omega)
+    assert np.all(np.isfinite(gradient))
+    # d/dω of (total + farthest) = 2·12·dt·ω/|ω| for a body at constant ω (both are 12·dt·|ω|).
+    expected = (
+        2
+        * 12
+        * dt
+        * np.asarray(omega)
+        / np.maximum(np.linalg.norm(np.asarray(omega), axis=-1, keepdims=True), 1e-300)
+    )
+    np.testing.assert_allclose(gradient[:2], expected[:2], rtol=1e-9, atol=1e-14)
+    np.testing.assert_allclose(gradient[2], 0.0, atol=0)  # at rest: the minimum-norm subgradient
+    h = 1e-6
+    for i in range(2):
+        for j in range(3):
+            step = jnp.zeros_like(omega).at[i, j].set(h)
+            difference = (statistics(omega + step) - statistics(omega - step)) / (2 * h)
+            np.testing.assert_allclose(gradient[i, j], difference, rtol=1e-6, atol=1e-8)
+
+
 def test_rigid_bodies_match_simulate_rigid_body(getkey):
     q0, omega = _ensemble(getkey, 64)
     inertia = jnp.array([1.0, 2.0, 3.5])
