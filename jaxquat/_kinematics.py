@@ -6,7 +6,6 @@ World frame (default): q̇ = ½ ω̃ q. Body frame: q̇ = ½ q ω̃.
 from __future__ import annotations
 
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from ._algebra import conjugate, from_vector, multiply
@@ -15,7 +14,6 @@ from ._numerics import (
     broadcast_batch,
     check_frame,
     check_trailing,
-    is_tracer,
     sum_squares,
     tan_half_over,
 )
@@ -116,8 +114,8 @@ def angular_velocity(qs: ArrayLike, dt: ArrayLike, *, frame: str = "world") -> A
 
     **Returns:** ω, shape `(T - 1, ..., 3)`.
 
-    **Errors:** a `ValueError` for a `dt` that is zero or not finite (when it is concrete; under
-    `jax.jit` such a Δt gives inf or NaN).
+    A non-finite Δt gives NaN (an infinite one gave a plausible ω = 0), a zero Δt inf or NaN: bad
+    values propagate, as everywhere in jaxquat's math functions.
     """
     frame = check_frame(frame)
     qs = check_trailing(qs, 4, "qs")
@@ -126,19 +124,6 @@ def angular_velocity(qs: ArrayLike, dt: ArrayLike, *, frame: str = "world") -> A
             f"`qs` must be a trajectory of shape (T, ..., 4) with T >= 2; got shape {tuple(qs.shape)}."
         )
     dt = as_float_array(dt, "dt")
-    if not is_tracer(dt):
-        # ω = rotation / Δt: Δt = 0 gave inf/NaN, an infinite Δt a plausible ω = 0, a NaN NaN.
-        values = np.asarray(dt)
-        bad = ~np.isfinite(values) | (values == 0)
-        if bad.any():
-            raise ValueError(
-                f"`dt` must be finite and non-zero; got {float(values[bad].flat[0])}"
-                + (
-                    f" at index {tuple(int(i) for i in np.argwhere(bad)[0])}."
-                    if values.ndim
-                    else "."
-                )
-            )
     before, after = qs[:-1], qs[1:]
     if frame == "world":
         relative = multiply(after, conjugate(before))
@@ -159,4 +144,5 @@ def angular_velocity(qs: ArrayLike, dt: ArrayLike, *, frame: str = "world") -> A
         raise ValueError(
             f"`dt` must be a scalar or of shape {batch} (time-major); got {given}."
         ) from e
-    return rotvec / dt[..., None]
+    finite = jnp.isfinite(dt)[..., None]
+    return jnp.where(finite, rotvec / jnp.where(finite, dt[..., None], 1.0), jnp.nan)
