@@ -229,14 +229,15 @@ def _to_host(x: Array) -> np.ndarray:
 def _update_statistics(stats, q_start, q, q_next):
     """Per-step statistics: Σ step angles, and the farthest rotation r = q_start* ⊗ q so far.
 
-    The farthest rotation is tracked by sin²(θ/2) = |vec r|², monotone in θ ∈ [0, π], kept with its
-    |w(r)|, so a step costs one relative rotation and two selects; its angle is taken once, at the
-    end (`_farthest_angle`, accurate near 0 and near π). The step angle needs one atan2 per step
-    (the dominant cost of statistics).
+    The farthest rotation is kept as (|vec r|², |w(r)|), so a step costs one relative rotation and
+    two selects; its angle is taken once, at the end (`_farthest_angle`). Rotations are compared by
+    tan²(θ/2) = |vec r|²/w², cross-multiplied, which resolves angles near π as well as near 0
+    (sin²(θ/2) = |vec r|² alone rounds to the same value for π − 1e-8 and π − 1e-12, and kept the
+    first: a review). The step angle needs one atan2 per step (the dominant cost of statistics).
     """
     total, farthest_s2, farthest_w = stats
     w, s2 = _relative_parts(q_start, q_next)
-    further = s2 > farthest_s2
+    further = s2 * (farthest_w * farthest_w) > farthest_s2 * (w * w)
     farthest_s2 = jnp.where(further, s2, farthest_s2)
     farthest_w = jnp.where(further, jnp.abs(w), farthest_w)
     return total + _angle_between(q, q_next), farthest_s2, farthest_w

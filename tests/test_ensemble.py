@@ -123,6 +123,28 @@ def test_statistics_near_a_half_turn_and_their_derivatives():
             np.testing.assert_allclose(gradient[i, j], difference, rtol=1e-6, atol=1e-8)
 
 
+@pytest.mark.parametrize(
+    ("dtype", "first", "second"), [(jnp.float64, 1e-8, 1e-12), (jnp.float32, 3e-4, 1e-6)]
+)
+def test_farthest_angle_tells_apart_two_visits_near_a_half_turn(dtype, first, second):
+    """A body turns to π − first, back to the start, then to π − second (closer to π). Chosen by
+    sin²(θ/2) alone the two visits round to the same value and the first was kept: a review saw
+    max_angle_from_start = π − 1e-8 with angle_from_start = π − 1e-12. Compared by tan²(θ/2) the
+    farthest is the last visit, as the body's own angle from the start says."""
+    turns = np.array([np.pi - first, -(np.pi - first), np.pi - second])
+
+    def omega(t, q):
+        k = jnp.clip(jnp.round(t).astype(jnp.int32), 0, 2)
+        rate = jnp.asarray([0.0, 0.0, 1.0], q.dtype) * jnp.asarray(turns, q.dtype)[k]
+        return jnp.broadcast_to(rate, q.shape[:-1] + (3,))
+
+    q0 = jnp.asarray([[1.0, 0.0, 0.0, 0.0]], dtype)
+    result = simulate_ensemble(q0, omega, 1.0, 3, statistics=True)
+    final = float(result.angle_from_start[0])
+    assert np.pi - final < 10 * second
+    assert float(result.max_angle_from_start[0]) == final
+
+
 def test_rigid_bodies_match_simulate_rigid_body(getkey):
     q0, omega = _ensemble(getkey, 64)
     inertia = jnp.array([1.0, 2.0, 3.5])
