@@ -185,7 +185,7 @@ def test_bench_without_the_suite_is_a_one_line_error(monkeypatch, capsys):
     _assert_one_line_error(status, err, "benchmark suite")
 
 
-def test_bench_passes_the_quick_preset(monkeypatch, capsys):
+def test_bench_passes_its_arguments_to_the_suite(monkeypatch, capsys):
     calls = []
     fake = type(sys)("jaxquat._bench")
     fake.main = lambda argv: calls.append(argv) or 0
