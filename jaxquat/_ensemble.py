@@ -39,6 +39,7 @@ from ._integrate import (
     Sampled,
     _act,
     _check_magnus_omega,
+    _compensated_add,
     _compensated_step,
     _eps_of,
     _rotation_minus_one,
@@ -298,9 +299,7 @@ def _kinematic_step_fn(config, omega_fn, omega, dt, t0, q_start, offset):
         index = offset + k
         t = t0 + index.astype(t0.dtype) * dt
         if hoisted is not None and config["compensated"]:
-            y = _act(q, hoisted, frame) - c
-            q_next = q + y
-            c = (q_next - q) - y
+            q_next, c = _compensated_add(q, _act(q, hoisted, frame), c)
         elif hoisted is not None:
             q_next = _act(q, hoisted, frame)
         elif config["compensated"]:

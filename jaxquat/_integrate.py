@@ -370,11 +370,14 @@ def _compensated_step(method: str, field: Callable, t, q: Array, c: Array, h, fr
         # (1 + d₂)(1 + d) − 1 = d₂ + d + d₂d (world; the body frame multiplies on the other side).
         d2 = _rotation_minus_one(phi)
         d = d2 + d + (multiply(d2, d) if frame == "world" else multiply(d, d2))
-    delta = _act(q, d, frame)
+    return _compensated_add(q, _act(q, d, frame), c)
+
+
+def _compensated_add(q: Array, delta: Array, c: Array) -> tuple[Array, Array]:
+    """q + δ by Kahan summation with the running compensation `c`: the new (q, c)."""
     y = delta - c
     s = q + y
-    c = (s - q) - y
-    return s, c
+    return s, (s - q) - y
 
 
 # ----------------------------------------------------------------------------------------------------
