@@ -40,9 +40,11 @@ def series_threshold(dtype) -> float:
 
 
 def as_float_array(x: ArrayLike, name: str = "x") -> Array:
-    """`jnp.asarray(x)`, promoting integer / bool input to the default float dtype.
+    """`jnp.asarray(x)`, promoting integer / bool input to the default float dtype, weakly typed.
 
-    Floating input keeps its dtype (float32 in → float32 out). `None`, strings, ragged nested lists
+    Floating input keeps its dtype (float32 in → float32 out). Integers become a weakly typed float,
+    as a Python float would be, so `slerp(p32, q32, 1)` stays float32 when x64 is on (as
+    `p32 * jnp.asarray(1)` does); a strong float64 would have widened the float32 operands. `None`, strings, ragged nested lists
     and other non-numeric input raise a `ValueError` naming the argument.
     """
     if x is None:
@@ -57,7 +59,14 @@ def as_float_array(x: ArrayLike, name: str = "x") -> Array:
     if not jnp.issubdtype(x.dtype, jnp.floating):
         if jnp.issubdtype(x.dtype, jnp.complexfloating):
             raise ValueError(f"`{name}` must be real; got dtype {x.dtype}.")
-        x = x.astype(default_float_dtype())
+        # `x * 1.0`: JAX's promotion of any integer with a Python float is the weakly typed default
+        # float (`astype` would make it strong), under the standard promotion rules (a user's
+        # "strict" mode refuses it), from at least 8 bits (int4 does not promote).
+        if jnp.issubdtype(x.dtype, jnp.integer) and jnp.iinfo(x.dtype).bits < 8:
+            x = x.astype(jnp.int8 if jnp.issubdtype(x.dtype, jnp.signedinteger) else jnp.uint8)
+        with jax.numpy_dtype_promotion("standard"):
+            x = x * 1.0
+        assert x.dtype == default_float_dtype() and x.weak_type
     return x
 
 

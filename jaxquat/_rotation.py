@@ -21,6 +21,7 @@ from ._numerics import (
     prescale,
     safe_atan2,
     safe_norm,
+    scaled_norm,
     sinc_half,
     sum_squares,
     top_eigenvector,
@@ -120,7 +121,9 @@ def to_axis_angle(q: ArrayLike) -> tuple[Array, Array]:
     undefined = _undefined(q)
     q = jnp.where(q[..., :1] < 0, -q, q)
     v = q[..., 1:]
-    s = safe_norm(v)
+    # |v| prescaled on its own: beside w ≈ 1, |v|² of a rotation by less than ~2e-19 rad (float32;
+    # ~3e-154 in float64) underflows, and gave angle 0 with the default axis.
+    s = scaled_norm(v)
     angle = 2.0 * jnp.arctan2(s, q[..., 0])
     default = jnp.zeros_like(v).at[..., 0].set(1.0)
     # `~(s <= 0)`, not `s > 0`: a NaN vector part takes the computing branch (NaN), not the default.
@@ -139,6 +142,9 @@ def from_rotvec(r: ArrayLike) -> Array:
     """The unit quaternion exp(r/2) = (cos(|r|/2), sin(|r|/2) r/|r|) of a rotation vector r.
 
     Series-switched at r = 0: value (1, 0, 0, 0), Jacobian ½·[0; I₃] (SciPy's and jax.scipy's are NaN).
+    NaN when |r|² overflows (|r| above ~1.3e154 in float64, ~1.8e19 in float32), where one unit in
+    the last place of |r| is already many turns; `exp((0, r/2))` takes such vectors too (at the cost
+    of a second cos and sin, which this function, called in integrators' inner loops, avoids).
     """
     r = check_trailing(r, 3, "r")
     theta_sq = sum_squares(r)

@@ -85,3 +85,70 @@ def test_float32_gimbal_lock_at_pi_follows_scipys_rule(seq):
     assert abs(np.angle(np.exp(1j * (got[0] - expected[0])))) < 1e-5
     roundtrip = jq.from_euler(seq, got)
     assert jq.angle_between(roundtrip, jnp.asarray(q, jnp.float64)) < 1e-6
+
+
+@pytest.mark.parametrize("dtype, angle", [(jnp.float32, 1e-20), (jnp.float64, 1e-160)])
+def test_tiny_rotations_keep_their_angle_and_axis(dtype, angle):
+    """A rotation so small that |vec q|² underflows beside w = 1 (below ~2e-19 rad in float32,
+    ~3e-154 in float64) still has its angle and axis: `to_axis_angle` gave angle 0 with the default
+    axis (1, 0, 0), `angle_between` 0 (its docstring promises round-off accuracy for tiny angles).
+    `to_rotvec` gives the reference; the closed form is the axis-angle the rotation was made from."""
+    axis = jnp.array([0.0, 0.6, 0.8], dtype)
+    q = jq.from_axis_angle(axis, jnp.asarray(angle, dtype))
+    for fn in (lambda q: jq.to_axis_angle(q), jax.jit(jq.to_axis_angle)):
+        got_axis, got_angle = fn(q)
+        np.testing.assert_allclose(got_angle, angle, rtol=4 * np.finfo(dtype).eps)
+        np.testing.assert_allclose(got_axis, axis, rtol=0, atol=4 * np.finfo(dtype).eps)
+    identity = jq.identity((), dtype)
+    for fn in (jq.angle_between, jax.jit(jq.angle_between)):
+        np.testing.assert_allclose(fn(identity, q), angle, rtol=4 * np.finfo(dtype).eps)
+        np.testing.assert_allclose(fn(q, identity), angle, rtol=4 * np.finfo(dtype).eps)
+    np.testing.assert_allclose(
+        jq.to_rotvec(q), angle * np.asarray(axis), rtol=4 * np.finfo(dtype).eps
+    )
+    # The derivative at the identity is still the safe norm's 0 (no NaN).
+    assert np.all(jax.grad(lambda q: jq.angle_between(identity, q))(identity) == 0)
+    assert np.all(jax.jacrev(lambda q: jq.to_axis_angle(q)[1])(identity) == 0)
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda q: jq.slerp(q, q, 1),
+        lambda q: jq.squad(q, q, q, q, 0),
+        lambda q: jq.from_axis_angle(q[1:], 1),
+        lambda q: jq.from_axis_angle(q[1:], np.array(1)),
+        lambda q: jq.slerp(q, q, np.array([0, 1])),
+        lambda q: jq.rotate(np.array([3, 0, 0]), q),
+        lambda q: jq.step(q, q[1:], 1),
+        lambda q: jq.integrate(q, q[1:], 1, 3),
+    ],
+)
+def test_integer_arguments_do_not_widen_float32(call):
+    """Integer times, angles and vectors (a Python int or an integer array) are promoted as JAX
+    promotes them, to a weakly typed float, so the float32 quaternions stay float32 with x64 on (as
+    `q32 * jnp.asarray(1)` does): a strong float64 made every one of these float64 (a review)."""
+    assert jax.config.jax_enable_x64
+    q = jq.normalize(jnp.array([1.0, 0.2, 0.3, 0.4], jnp.float32))
+    assert call(q).dtype == jnp.float32
+
+
+def test_integer_only_input_is_the_default_float():
+    """With nothing else to set the width, integers still give the default float dtype."""
+    assert jq.to_matrix(np.array([1, 0, 0, 0])).dtype == jnp.float64
+    assert jq.from_axis_angle([0, 0, 1], 1).dtype == jnp.float64
+    np.testing.assert_allclose(
+        jq.rotate(jnp.array([3, 0, 0]), jnp.array([1, 2, 3, 4])), [-2, 2, 1], atol=1e-15
+    )
+
+
+def test_integer_input_under_strict_promotion_and_in_four_bits():
+    """Integers become floats without the user's promotion mode getting a say (the weak float came
+    from `x * 1.0`, which "strict" promotion refused) and from four-bit integers (which do not
+    promote at all)."""
+    with jax.numpy_dtype_promotion("strict"):
+        q = jq.from_rotvec(np.array([1, 2, 3]))
+    np.testing.assert_allclose(q, jq.from_rotvec(np.array([1.0, 2.0, 3.0])), rtol=0, atol=0)
+    for dtype in (jnp.int4, jnp.uint4):
+        q = jq.from_rotvec(jnp.array([1, 2, 3], dtype))
+        np.testing.assert_allclose(q, jq.from_rotvec(np.array([1.0, 2.0, 3.0])), rtol=0, atol=0)
