@@ -112,8 +112,9 @@ def _rotation_minus_one(phi: Array) -> Array:
     )
 
 
-def _tree_axpy(x: Any, h: Array, *terms: tuple[float, Any]) -> Any:
-    """x + h Σ cᵢ gᵢ over a pytree x (None stays None), h cast to each leaf's dtype."""
+def _tree_axpy(x: Any, h: Array, *terms: tuple[float, Any], increment: bool = False) -> Any:
+    """x + h Σ cᵢ gᵢ over a pytree x (None stays None), h cast to each leaf's dtype; with
+    `increment`, the increment h Σ cᵢ gᵢ alone (for a compensated sum)."""
     if x is None:
         return None
 
@@ -124,7 +125,7 @@ def _tree_axpy(x: Any, h: Array, *terms: tuple[float, Any]) -> Any:
         for (c, _), g in zip(terms, gs, strict=True):
             term = c * jnp.asarray(g).astype(xi.dtype)
             total = term if total is None else total + term
-        return xi + hi * total
+        return hi * total if increment else xi + hi * total
 
     return jax.tree_util.tree_map(leaf, x, *(g for _, g in terms))
 
@@ -239,8 +240,11 @@ def _stage_rates(
 # One step
 
 
-def _lie_parts(method: str, field: Callable, t, q: Array, x: Any, h, frame: str):
-    """The rotation vectors of one Lie-method step and the new x.
+def _lie_parts(
+    method: str, field: Callable, t, q: Array, x: Any, h, frame: str, *, x_increment: bool = False
+):
+    """The rotation vectors of one Lie-method step and the new x (with `x_increment`, x₁ − x as the
+    method forms it, for a compensated sum).
 
     Returns `(phis, x1)`: the step is q₁ = exp(φₙ) ⊗ … ⊗ exp(φ₁) ⊗ q (world) or
     q ⊗ exp(φ₁) ⊗ … ⊗ exp(φₙ) (body), i.e. `_rotate_by` applied with φ₁ first.
@@ -248,13 +252,13 @@ def _lie_parts(method: str, field: Callable, t, q: Array, x: Any, h, frame: str)
     hq = jnp.asarray(h).astype(q.dtype)
     if method == "euler":
         f1, g1 = _call_field(field, t, q, x)
-        return (hq * f1,), _tree_axpy(x, h, (1.0, g1))
+        return (hq * f1,), _tree_axpy(x, h, (1.0, g1), increment=x_increment)
     if method == "midpoint":
         f1, g1 = _call_field(field, t, q, x)
         q_half = _rotate_by(q, (0.5 * hq) * f1, frame)
         x_half = _tree_axpy(x, h, (0.5, g1))
         f2, g2 = _call_field(field, t + 0.5 * h, q_half, x_half)
-        return (hq * f2,), _tree_axpy(x, h, (1.0, g2))
+        return (hq * f2,), _tree_axpy(x, h, (1.0, g2), increment=x_increment)
     if method == "magnus4":
         if x is not None:
             raise ValueError(
@@ -302,8 +306,8 @@ def _lie_parts(method: str, field: Callable, t, q: Array, x: Any, h, frame: str)
         half = (0.5 * hq) * f1
         first = half + (hq / 12.0) * (2.0 * d2 + 2.0 * d3 - d4)
         second = half + (hq / 12.0) * (2.0 * d2 + 2.0 * d3 + 3.0 * d4)
-        x1 = _tree_axpy(x, h, (1.0 / 6.0, g1), (2.0 / 6.0, g2), (2.0 / 6.0, g3), (1.0 / 6.0, g4))
-        return (first, second), x1
+        weights = ((1.0 / 6.0, g1), (2.0 / 6.0, g2), (2.0 / 6.0, g3), (1.0 / 6.0, g4))
+        return (first, second), _tree_axpy(x, h, *weights, increment=x_increment)
     raise AssertionError(method)  # pragma: no cover
 
 
@@ -362,15 +366,71 @@ def lie_step(
     return _ambient_step(method, field, t, q, x, h, frame)
 
 
+def long_run_options(method: str, dtype, compensated, renormalize_every) -> tuple[bool, int | None]:
+    """Validate `compensated` (None: on for a Lie method with a float32 or float16 state) and
+    `renormalize_every` (a static int ≥ 1, or None) as `integrate` takes them."""
+    if renormalize_every is not None:
+        renormalize_every = _check_count(renormalize_every, "renormalize_every", 1)
+    compensated = _check_flag(compensated, "compensated", allow_none=True)
+    if compensated is None:
+        compensated = method in LIE_METHODS and jnp.dtype(dtype).itemsize < 8
+    elif compensated and method not in LIE_METHODS:
+        raise ValueError(
+            f"`compensated`=True needs a Lie method ({', '.join(LIE_METHODS)}); got method={method!r}."
+        )
+    return bool(compensated), renormalize_every
+
+
 def _compensated_step(method: str, field: Callable, t, q: Array, c: Array, h, frame: str):
     """One Lie step in increment form q ← q + δ, δ = (R − 1) ⊗ q, with Kahan compensation `c`."""
-    phis, _ = _lie_parts(method, field, t, q, None, h, frame)
+    q, _, (c, _) = compensated_lie_step(method, field, t, q, None, (c, None), h, frame=frame)
+    return q, c
+
+
+def compensated_lie_step(
+    method: str, field: Callable, t, q: Array, x: Any, c: tuple[Array, Any], h, *, frame: str
+) -> tuple[Array, Any, tuple[Array, Any]]:
+    """`lie_step` for a Lie method in the float32 long-run mode (docs/numerics.md §5): q advanced in
+    increment form q ← q + δ, δ = (R − 1) ⊗ q, and x ← x + Δx as the method forms Δx, both by Kahan
+    summation with the running compensations `c = (c_q, c_x)` (`c_x` a pytree like x, None when x
+    is). Returns `(q1, x1, c1)`."""
+    c_q, c_x = c
+    phis, dx = _lie_parts(method, field, t, q, x, h, frame, x_increment=True)
     d = _rotation_minus_one(phis[0])
     for phi in phis[1:]:
         # (1 + d₂)(1 + d) − 1 = d₂ + d + d₂d (world; the body frame multiplies on the other side).
         d2 = _rotation_minus_one(phi)
         d = d2 + d + (multiply(d2, d) if frame == "world" else multiply(d, d2))
-    return _compensated_add(q, _act(q, d, frame), c)
+    q, c_q = _compensated_add(q, _act(q, d, frame), c_q)
+    if x is None:
+        return q, None, (c_q, None)
+    leaves, structure = jax.tree_util.tree_flatten(x)
+    pairs = [
+        _compensated_add(*leaf)
+        for leaf in zip(
+            leaves, structure.flatten_up_to(dx), structure.flatten_up_to(c_x), strict=True
+        )
+    ]
+    x = structure.unflatten([pair[0] for pair in pairs])
+    c_x = structure.unflatten([pair[1] for pair in pairs])
+    return q, x, (c_q, c_x)
+
+
+def renormalized_when_due(index, q: Array, c: Array | None, every: int) -> tuple[Array, Any]:
+    """q/|q| after global step `index` when `(index + 1) % every == 0` (and the Kahan compensation
+    `c`, if any, reset); otherwise (q, c) unchanged.
+
+    A conditional, not a select: the norm is taken only when due (a select takes it, and a division,
+    every step: 2.3x the cost of a float64 Lie–Euler step, 3.6x in float32), and a zero body
+    (padding) is not normalised between renormalisations (q/|q| = NaN there, whose derivative times
+    a zero cotangent made every gradient NaN when a select computed it)."""
+    due = (index + 1) % every == 0
+
+    def renormalize(qc):
+        q, c = qc
+        return unit_quaternion(q), None if c is None else jnp.zeros_like(c)
+
+    return lax.cond(due, renormalize, lambda qc: qc, (q, c))
 
 
 def _compensated_add(q: Array, delta: Array, c: Array) -> tuple[Array, Array]:
@@ -825,20 +885,14 @@ def integrate(
     save = check_choice(save, ("all", "final"), "save")
     num_steps, save_every = _check_steps(num_steps, save, save_every)
     unroll = _check_count(unroll, "unroll", 1)
-    if renormalize_every is not None:
-        renormalize_every = _check_count(renormalize_every, "renormalize_every", 1)
-    compensated = _check_flag(compensated, "compensated", allow_none=True)
     checkpoint = _check_flag(checkpoint, "checkpoint")
     q0 = check_trailing(q0, 4, "q0")
+    compensated, renormalize_every = long_run_options(
+        method, q0.dtype, compensated, renormalize_every
+    )
     dt_given, t0_given = dt, t0
     dt = _check_finite(_check_scalar(dt, "dt"), "dt")
     t0 = _check_finite(_check_scalar(t0, "t0"), "t0")
-    if compensated is None:
-        compensated = method in LIE_METHODS and jnp.dtype(q0.dtype).itemsize < 8
-    elif compensated and method not in LIE_METHODS:
-        raise ValueError(
-            f"`compensated`=True needs a Lie method ({', '.join(LIE_METHODS)}); got method={method!r}."
-        )
     if not callable(omega):
         omega = check_trailing(omega, 3, "omega")
     # Samples on the integration grid (same dt and t0, known before tracing) are fed to the scan as
@@ -970,19 +1024,8 @@ def _integrate(
         return t0 + k.astype(time_dtype) * dt
 
     def renormalized(k, q, c=None):
-        """q/|q| every `renormalize_every` steps (and the Kahan compensation `c`, if any, reset).
-
-        A conditional, not a select: the norm is taken only when due (a select takes it, and a
-        division, every step: 2.3x the cost of a float64 Lie–Euler step, 3.6x in float32), and a
-        zero body (padding) is not normalised between renormalisations (q/|q| = NaN there, whose
-        derivative times a zero cotangent made every gradient NaN when a select computed it)."""
-        due = (k + 1) % renormalize_every == 0
-
-        def renormalize(qc):
-            q, c = qc
-            return unit_quaternion(q), None if c is None else jnp.zeros_like(c)
-
-        return lax.cond(due, renormalize, lambda qc: qc, (q, c))
+        """q/|q| every `renormalize_every` steps (and the Kahan compensation `c`, if any, reset)."""
+        return renormalized_when_due(k, q, c, renormalize_every)
 
     def step_field(x):
         if x is None:
