@@ -841,6 +841,18 @@ def check_fit_memory(rows: int, available: int | None, path: str, model: str = "
 
 
 def _cmd_fit(args: argparse.Namespace) -> int:
+    # Option errors before the file is read, as option errors (the library's would name the file).
+    if args.knots is not None:
+        minimum = {"constant": None, "piecewise_linear": 2, "spline": 4}[args.model]
+        if minimum is None:
+            raise CommandLineError(
+                "argument --knots: only used with --model piecewise_linear or spline"
+            )
+        if args.knots < minimum:
+            raise CommandLineError(
+                f"argument --knots: must be at least {minimum} for --model {args.model}; "
+                f"got {args.knots}"
+            )
     times, quaternions = read_observations_csv(args.file)
     check_fit_memory(times.shape[0], _memory_available(), args.file, args.model)
     _setup_jax("float64")
@@ -951,6 +963,16 @@ def _check_png_path(path: str) -> str:
         raise CommandLineError(f"--output {path}: is a directory")
     if not os.access(directory, os.W_OK):
         raise CommandLineError(f"--output {path}: directory is not writable")
+    # Open it now (and remove it again if it is new), before minutes of work: the checks above pass a
+    # dangling symbolic link or a file system that refuses new files, found only when saving.
+    existed = os.path.exists(path)  # follows a symbolic link: what `open` creates is its target
+    try:
+        with open(path, "ab"):
+            pass
+    except OSError as e:
+        raise CommandLineError(f"--output {path}: {e.strerror or e}") from None
+    if not existed:
+        os.remove(os.path.realpath(path))
     return path
 
 

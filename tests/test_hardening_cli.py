@@ -163,6 +163,29 @@ def test_cli_fit_with_too_many_knots_is_a_one_line_error(tmp_path, capsys):
     _assert_one_line_error(status, out, err, "knots", "1000")
 
 
+@pytest.mark.parametrize(
+    "options, fragment",
+    [
+        (["--knots", "5"], "argument --knots: only used with --model piecewise_linear or spline"),
+        (
+            ["--model", "piecewise_linear", "--knots", "1"],
+            "at least 2 for --model piecewise_linear",
+        ),
+        (["--model", "spline", "--knots", "3"], "at least 4 for --model spline; got 3"),
+    ],
+)
+def test_cli_fit_knots_errors_name_the_option_not_the_file(tmp_path, capsys, options, fragment):
+    """A --knots the model cannot use is an option error, said before the file is read (it named the
+    CSV file and the library's `knots`, a review); a missing file does not hide it."""
+    for path in (
+        _write(tmp_path / "obs.csv", _csv_lines(*_observations(40))),
+        tmp_path / "none.csv",
+    ):
+        status, out, err = _run(["fit", path, *options], capsys)
+        _assert_one_line_error(status, out, err, fragment)
+        assert str(path) not in err
+
+
 # --- 3. quaternion scales, non-finite times, JSON without NaN -----------------------------------
 
 
@@ -1076,3 +1099,46 @@ def test_bench_relaunch_keeps_the_options_before_bench(monkeypatch, capsys):
     args.bench_args, args.global_args, args.from_command_line = ["--quiet"], ["--distributed"], True
     assert _cli._cmd_bench(args) == 0
     assert calls == [["-m", "jaxquat", "--distributed", "bench", "--quiet"], "initialize"]
+
+
+def test_demo_output_that_cannot_be_created_fails_before_the_run(tmp_path, capsys, monkeypatch):
+    """A dangling symbolic link passed the directory checks and failed only when the PNG was saved,
+    after the whole demo had run and printed its table (a review); the path is now opened first."""
+
+    def must_not_run(*args, **kwargs):
+        raise AssertionError("the demo ran before its output was checked")
+
+    monkeypatch.setattr("jaxquat._cli._demo_ensemble", must_not_run)
+    link = tmp_path / "link.png"
+    link.symlink_to(tmp_path / "missing" / "target.png")
+    status, out, err = _run(["demo", "--output", link, "--no-progress"], capsys)
+    _assert_one_line_error(status, out, err, "--output", "link.png", "No such file or directory")
+
+
+def test_demo_output_probe_leaves_files_as_they_were(tmp_path):
+    """The probe creates a missing file only for a moment, and leaves an existing one untouched."""
+    from jaxquat._cli import _check_png_path
+
+    new = tmp_path / "new.png"
+    assert _check_png_path(str(new)) == str(new) and not new.exists()
+    old = tmp_path / "old.png"
+    old.write_bytes(b"\x89PNG previous figure")
+    assert _check_png_path(str(old)) == str(old) and old.read_bytes() == b"\x89PNG previous figure"
+    link = tmp_path / "link.png"
+    link.symlink_to(tmp_path / "target.png")
+    assert _check_png_path(str(link)) == str(link)
+    assert link.is_symlink() and not (tmp_path / "target.png").exists()
+
+
+def test_load_ensemble_reads_an_index_saved_with_a_byte_order_mark(run, tmp_path):
+    """An index.json an editor saved again with a UTF-8 byte-order mark loads as before (it was
+    "not valid JSON", while the CLI's CSV and TOML readers accept a BOM), and a run writing into
+    that directory again can replace it."""
+    before = load_ensemble(run)
+    text = (run / "index.json").read_text(encoding="utf-8")
+    (run / "index.json").write_text("\ufeff" + text, encoding="utf-8")
+    after = load_ensemble(run)
+    np.testing.assert_array_equal(after["final"], before["final"])
+    np.testing.assert_array_equal(after["states"], before["states"])
+    simulate_ensemble(np.tile([1.0, 0, 0, 0], (5, 1)), np.ones((5, 3)), 0.1, 2, path=run)
+    assert load_ensemble(run)["steps_done"] == 2
