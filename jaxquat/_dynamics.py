@@ -494,16 +494,15 @@ def simulate_rigid_body(
     - `save`: `"all"` (every `save_every`-th state, including the initial one) or `"final"`;
       `save_every` ≥ 1 must divide `num_steps`.
     - `t0`: the initial time (a scalar, passed to `torque`).
-    - `compensated`, `renormalize_every`: the long-run mode of `integrate`, for the orientation of
-      the Lie methods (`"cf4"`, `"midpoint"`, `"euler"`): q advanced in Kahan-compensated increments
-      (default: on for float32 and float16 states; ω's Runge–Kutta update is compensated too), and
-      q/|q| every `renormalize_every` steps (`None`:
-      never). As in `integrate`, a non-unit `q0` keeps its norm until the first renormalisation,
-      which scales the state to |q| = 1. In float32, 10⁵ steps of 1e-3 s of a sphere spinning at
-      1.4 rad/s end 1e-7 to 3e-6 rad from the closed form with them (depending on the axis: about
-      float32's rounding of ωΔt, times the 140 rad turned), and 1.7e-3 rad (cf4; |q| − 1 = −4.8e-4)
-      or 7e-6 to 2.6e-5 rad (midpoint, euler) without. An asymmetric body (I = (1, 2, 3), ω₀ = (1.1, 0, 0.8) rad/s) ends 9.9e-6 rad
-      from the float64 run after those 10⁵ steps, 3.3e-4 rad without.
+    - `compensated`, `renormalize_every`: the long-run mode of `integrate`, for the Lie methods
+      (`"cf4"`, `"midpoint"`, `"euler"`): q and ω advanced in Kahan-compensated increments (default:
+      on for float32 and float16 states), and q/|q| every `renormalize_every` steps (`None`: never).
+      As in `integrate`, a non-unit `q0` keeps its norm until the first renormalisation, which
+      scales the state to |q| = 1. In float32, 10⁵ steps of 1e-3 s of a sphere spinning at 1.4 rad/s
+      end 1e-7 to 3e-6 rad from the closed form with them (depending on the axis: about float32's
+      rounding of ωΔt, times the 140 rad turned), and 1.7e-3 rad (cf4; |q| − 1 = −4.8e-4) or 7e-6 to
+      2.6e-5 rad (midpoint, euler) without. An asymmetric body (I = (1, 2, 3), ω₀ = (1.1, 0, 0.8)
+      rad/s) ends 9.9e-6 rad from the float64 run after those 10⁵ steps, 3.3e-4 rad without.
 
     **Returns:** `(qs, omegas)`: time-major orientations `(num_saved, ..., 4)` and angular velocities
     `(num_saved, ..., 3)` in the frame `frame` (without the time axis for `save="final"`).

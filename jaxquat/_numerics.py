@@ -44,8 +44,9 @@ def as_float_array(x: ArrayLike, name: str = "x") -> Array:
 
     Floating input keeps its dtype (float32 in → float32 out). Integers become a weakly typed float,
     as a Python float would be, so `slerp(p32, q32, 1)` stays float32 when x64 is on (as
-    `p32 * jnp.asarray(1)` does); a strong float64 would have widened the float32 operands. `None`, strings, ragged nested lists
-    and other non-numeric input raise a `ValueError` naming the argument.
+    `p32 * jnp.asarray(1)` does); a strong float64 would have widened the float32 operands. `None`,
+    strings, ragged nested lists and other non-numeric input raise a `ValueError` naming the
+    argument.
     """
     if x is None:
         raise ValueError(f"`{name}` must be an array of numbers; got None.")
@@ -66,7 +67,6 @@ def as_float_array(x: ArrayLike, name: str = "x") -> Array:
             x = x.astype(jnp.int8 if jnp.issubdtype(x.dtype, jnp.signedinteger) else jnp.uint8)
         with jax.numpy_dtype_promotion("standard"):
             x = x * 1.0
-        assert x.dtype == default_float_dtype() and x.weak_type
     return x
 
 
