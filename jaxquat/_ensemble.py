@@ -1182,6 +1182,8 @@ def simulate_ensemble(
         time_eps = max(_eps_of(x) for x in (dt_array, jnp.asarray(t0), *grid))
     if omega_fn is not None:
         _check_omega_fn(omega_fn, method, t0_device, dt_device, q_start)
+    # float32 long-run mode (Kahan-compensated increments), as in `integrate` / `simulate_rigid_body`.
+    compensated = method in LIE_METHODS and jnp.dtype(dtype).itemsize < 8
     if dynamic:
         if inertia_batch == ():  # one inertia for all bodies: replicated, not sharded
             replicated = NamedSharding(sharding.mesh, PartitionSpec())
@@ -1191,11 +1193,9 @@ def simulate_ensemble(
             fill = np.eye(3) if element == (3, 3) else np.ones(3)
             inertia_state = place(inertia, element, fill)
         omega_body = omega_start if frame == "body" else _to_body(omega_start, q_start)
-        compensated = method in LIE_METHODS and jnp.dtype(dtype).itemsize < 8
         c0 = compensations(q_start, omega_body) if compensated else None
         state = (q_start, omega_body, inertia_state, c0)  # as `simulate_rigid_body`: compensated
     else:
-        compensated = method in LIE_METHODS and jnp.dtype(dtype).itemsize < 8
         c0 = jnp.zeros_like(q_start) if compensated else None
         state = (q_start, c0, omega_start)
     stats = None
