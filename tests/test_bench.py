@@ -236,3 +236,30 @@ def test_w5_above_the_peer_size_checks_jaxquat_on_a_subset(sampled, monkeypatch)
     monkeypatch.setattr(_bench, "_w5_forwards", wrong_jaxquat)
     row = _bench.run_w5_row(problem, sampled, preset, lambda message: None)
     assert row["contenders"]["jaxquat"]["correct"] is False
+
+
+def test_w5_floor_script_runs_and_checks_its_passes():
+    """benchmarks/w5_floor.py (the memory floor under W5's gradient, benchmarks/README.md) runs at a tiny
+    size, including a step count that is not a multiple of its three-row blocks, and reports every
+    line; its own checks (the floor passes copy and sum the samples exactly) run before any timing.
+    Bad sizes are a one-line usage error."""
+    import pathlib
+    import subprocess
+    import sys
+
+    script = pathlib.Path(__file__).parents[1] / "benchmarks" / "w5_floor.py"
+    done = subprocess.run(
+        [sys.executable, str(script), "--bodies", "5", "--steps", "8", "--repeats", "1"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "samples: (8, 5, 3) float64" in done.stdout
+    for label in ("read", "zero + write", "jaxquat forward", "jaxquat gradient", "floor ÷ read"):
+        assert label in done.stdout
+    bad = subprocess.run(
+        [sys.executable, str(script), "--steps", "0"], capture_output=True, text=True, timeout=300
+    )
+    assert bad.returncode == 2 and "must be positive integers" in bad.stderr
+    assert "Traceback" not in bad.stderr
