@@ -17,21 +17,10 @@ See benchmarks/README.md ("Where W5's sampled gradient goes") for what the numbe
 """
 
 import argparse
-import statistics
+import functools
 import sys
-import time
 
-from jaxquat._bench import relaunch_with_huge_pages
-
-
-def _median_seconds(function, *args, repeats: int) -> float:
-    function(*args).block_until_ready()  # compile and warm up
-    samples = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function(*args).block_until_ready()
-        samples.append(time.perf_counter() - start)
-    return statistics.median(samples)
+from jaxquat._bench import _autorange, relaunch_with_huge_pages
 
 
 def main(argv: list[str]) -> int:
@@ -95,7 +84,7 @@ def main(argv: list[str]) -> int:
         "jaxquat gradient": jax.jit(jax.grad(loss)),
     }
     seconds = {
-        name: _median_seconds(f, samples, repeats=args.repeats) for name, f in timings.items()
+        name: _autorange(functools.partial(f, samples), args.repeats) for name, f in timings.items()
     }
     floor = seconds["read"] + seconds["zero + write"]
     size = samples.size * samples.dtype.itemsize / 1e9
