@@ -829,7 +829,10 @@ def run_row(problem: Problem, preset: Preset, log: Callable[[str], None]) -> dic
                 # step, so a peer with an expensive set-up is not timed on too few steps (which
                 # would understate its rate); the shorter pilot runs twice (the first call warms
                 # up). A compiled JAX peer has no set-up beyond dispatch: one length, run twice.
-                short = min(T, 10 if contender.is_jax else 2)
+                # NumPy pilots of 1 and 3 steps: a SciPy step at N = 10⁵ takes ~0.1 s, so the
+                # timed calls' floor of `long` steps is what their cost is (2 and 6 steps made
+                # the quick preset's SciPy calls 0.66 s, three times its 0.2 s budget: ~9 s more).
+                short = min(T, 10 if contender.is_jax else 1)
                 long = short if contender.is_jax else min(T, 3 * short)
                 pilots = {}
                 for pilot_steps in sorted({short, long}):
