@@ -829,9 +829,9 @@ def run_row(problem: Problem, preset: Preset, log: Callable[[str], None]) -> dic
                 # step, so a peer with an expensive set-up is not timed on too few steps (which
                 # would understate its rate); the shorter pilot runs twice (the first call warms
                 # up). A compiled JAX peer has no set-up beyond dispatch: one length, run twice.
-                # NumPy pilots of 1 and 3 steps: a SciPy step at N = 10⁵ takes ~0.1 s, so the
-                # timed calls' floor of `long` steps is what their cost is (2 and 6 steps made
-                # the quick preset's SciPy calls 0.66 s, three times its 0.2 s budget: ~9 s more).
+                # NumPy pilots of 1 and 3 steps, and a timed call runs at least `long` steps: a
+                # SciPy step at N = 10⁵ takes ~0.1 s, and 2 and 6 made the quick preset's SciPy
+                # calls 0.66 s, three times its 0.2 s budget (~9 s more per run).
                 short = min(T, 10 if contender.is_jax else 1)
                 long = short if contender.is_jax else min(T, 3 * short)
                 pilots = {}
