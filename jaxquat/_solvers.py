@@ -264,10 +264,8 @@ def _lin(coeffs, arrays, base=None):
     return out
 
 
-def _lin_leaves(coeffs, leaf_lists, base=None):
-    """Leaf-wise `_lin` over lists of leaves (the non-quaternion part of the state)."""
-    if base is None:
-        return [_lin(coeffs, [ks[i] for ks in leaf_lists]) for i in range(len(leaf_lists[0]))]
+def _lin_leaves(coeffs, leaf_lists, base):
+    """Leaf-wise `base + _lin` over lists of leaves (the non-quaternion part of the state)."""
     return [_lin(coeffs, [ks[i] for ks in leaf_lists], b) for i, b in enumerate(base)]
 
 
@@ -488,6 +486,8 @@ class _RKMK(diffrax.AbstractSolver):
         LiePolynomialInterpolation
     )
     tableau: ClassVar[_Tableau]
+    # Trace every stage separately instead of looping over them (tableaux of more than two stages).
+    unroll_stages: bool = eqx.field(default=False, static=True, kw_only=True)
     # Continuous extension: per stage, the coefficients of s, s², … of b_i(s); None: cubic Hermite.
     dense: ClassVar[tuple[tuple[float, ...], ...] | None] = None
 
@@ -511,25 +511,49 @@ class _RKMK(diffrax.AbstractSolver):
         # against the unit q1, scaled its rotation by |q0| (RKMK45, |q0| = 1 + 1e-6: 1e-8 off).
         u0 = _increment(dq, q0)
         q0 = _unit(q0)
-        big_k = [u0]  # dexp⁻¹-corrected stage increments in the Lie algebra
-        small_k = [dxs]  # stage increments of the other leaves
-        q_stage, x_stage = q0, x0
-        for row, ci in zip(tab.a, tab.c[1:], strict=True):
-            big_u = _lin(row, big_k)
+        n_stages = len(tab.c)
+        a = np.zeros((n_stages, n_stages))
+        for i, row in enumerate(tab.a, start=1):
+            a[i, :i] = row
+        times = [t0 + ci * h for ci in tab.c]
+
+        def weigh(coeffs, stacked):
+            """Σ_j c_j K_j over stacked stage increments (stage axis first; `coeffs` (..., stages))."""
+            return jnp.tensordot(jnp.asarray(coeffs, stacked.dtype), stacked, axes=1)
+
+        def stage(i, carry):
+            big_k, small_k, *_ = carry
+            row = a[i] if isinstance(i, int) else jnp.asarray(a)[i]
+            big_u = weigh(row, big_k)
             q_stage = _exp_stage(big_u, q0)
-            x_stage = _lin_leaves(row, small_k, x0)
-            f = _eval_f(terms, t0 + ci * h, treedef, q_stage, x_stage, args)
+            x_stage = [x + weigh(row, ks) for x, ks in zip(x0, small_k, strict=True)]
+            t = times[i] if isinstance(i, int) else jnp.stack(times)[i]
+            f = _eval_f(terms, t, treedef, q_stage, x_stage, args)
             dq, dxs = _apply_control(terms, f, control, treedef)
-            big_k.append(_dexpinv(big_u, _increment(dq, q_stage)))
-            small_k.append(dxs)
+            big_k = big_k.at[i].set(_dexpinv(big_u, _increment(dq, q_stage)))
+            small_k = [ks.at[i].set(dx) for ks, dx in zip(small_k, dxs, strict=True)]
+            return big_k, small_k, big_u, q_stage, x_stage, f
+
+        # The stage increments K_i (and the other leaves' k_i), stacked along a leading stage axis.
+        big_k = jnp.zeros((n_stages,) + u0.shape, u0.dtype).at[0].set(u0)
+        small_k = [jnp.zeros((n_stages,) + jnp.shape(d), d.dtype).at[0].set(d) for d in dxs]
+        carry = (big_k, small_k, jnp.zeros_like(u0), q0, list(x0), f)
+        if n_stages > 2 and not self.unroll_stages:
+            # One traced stage instead of n (as diffrax's own Runge–Kutta solvers do): measured for
+            # RKMK45 in the `RKMK45` docstring.
+            carry = lax.fori_loop(1, n_stages, stage, carry)
+        else:
+            for i in range(1, n_stages):
+                carry = stage(i, carry)
+        big_k, small_k, big_u, q_stage, x_stage, f = carry
         if tab.fsal:
             big_u1 = big_u
             q1, x1 = _unit(q_stage), x_stage
-            f_end, k_end, dx_end = f, big_k[-1], dxs
+            f_end, k_end, dx_end = f, big_k[-1], [ks[-1] for ks in small_k]
         else:
-            big_u1 = _lin(tab.b, big_k)
+            big_u1 = weigh(tab.b, big_k)
             q1 = _exp_left(big_u1, q0)
-            x1 = _lin_leaves(tab.b, small_k, x0)
+            x1 = [x + weigh(tab.b, ks) for x, ks in zip(x0, small_k, strict=True)]
             f_end = _eval_f(terms, t1, treedef, q1, x1, args)
             dq, dx_end = _apply_control(terms, f_end, control, treedef)
             k_end = _dexpinv(big_u1, _increment(dq, q1))
@@ -537,26 +561,23 @@ class _RKMK(diffrax.AbstractSolver):
         if tab.b_error is None:
             y_error = None
         else:
-            err_x = _lin_leaves(tab.b_error, small_k)
+            err_x = [weigh(tab.b_error, ks) for ks in small_k]
             # ½(0, δU) ⊗ q1 ≈ exp(U) ⊗ q0 − exp(Û) ⊗ q0: its norm is the geodesic distance on the
             # unit sphere S³ between the two solutions (radians; half the rotation angle between them),
             # i.e. the same measure a stock solver applies to the quaternion's components.
-            err_q = multiply(from_vector(0.5 * _lin(tab.b_error, big_k)), q1)
+            err_q = multiply(from_vector(0.5 * weigh(tab.b_error, big_k)), q1)
             y_error = _join(treedef, err_q, err_x)
         if self.dense is not None:
             # The tableau's continuous extension, V(s) = Σ b_i(s) K_i (the RKMK step is the tableau
             # applied to the ODE of V, so its dense output is V's).
-            powers = list(zip(*self.dense, strict=True))  # powers[p-1] = (β_1p, …, β_np)
-            qc = jnp.stack([_lin(row, big_k) for row in powers])
-            xcs = [
-                jnp.stack([_lin(row, [ks[i] for ks in small_k]) for row in powers])
-                for i in range(len(x0))
-            ]
+            powers = np.asarray(self.dense).T  # powers[p-1] = (β_1p, …, β_np)
+            qc = weigh(powers, big_k)
+            xcs = [weigh(powers, ks) for ks in small_k]
         else:
             qc = _hermite(big_u1, u0, k_end)
             xcs = [
-                _hermite(b - a, k0, k1)
-                for a, b, k0, k1 in zip(x0, x1, small_k[0], dx_end, strict=True)
+                _hermite(end - start, ks[0], k1)
+                for start, end, ks, k1 in zip(x0, x1, small_k, dx_end, strict=True)
             ]
         dense_info = _dense_info(y0, treedef, qc, xcs)
         return y1, y_error, dense_info, f_end, diffrax.RESULTS.successful
@@ -621,6 +642,13 @@ class RKMK45(_RKMK, diffrax.AbstractAdaptiveSolver):
     Tsitouras' continuous extension in the Lie algebra, $q(s) = \exp(\sum_i b_i(s) K_i) ⊗ q_n$, fourth
     order like Tsit5's own ($|q| = 1$ to round-off). At rtol = atol = 1e-10 on coning its error between
     steps is that at the step ends (a cubic Hermite interpolant was 130× worse there).
+
+    **Stages in a loop.** The five stages after the first are traced once, inside a loop (as diffrax
+    does for its own Runge–Kutta solvers). Measured on a 2-core CPU for the reverse-mode gradient of an
+    adaptive 1,267-step solve of one body: compiled in 12.9 s instead of 30.3 s, run in 108 ms instead
+    of 215 ms. Under `jax.vmap` over many bodies the loop costs run time instead: over 100 bodies the
+    same gradient ran in 2.7 s instead of 1.7 s, and the forward solve of 1,000 bodies in 4.4 s instead
+    of 2.1 s. Pass `RKMK45(unroll_stages=True)` there (the results agree to round-off).
 
     ??? cite "References"
 

@@ -459,6 +459,58 @@ def test_backsolve_adjoint():
     assert np.max(np.abs(alternative - exact)) <= 1e-4 * np.max(np.abs(exact))
 
 
+def test_rkmk45_stages_in_a_loop_match_the_unrolled_stages():
+    """`RKMK45` traces its stages once inside a loop; `unroll_stages=True` traces each. Both give the
+    same steps, dense output, other leaves and gradient to round-off (x depends on q, so the other
+    leaves' stage increments are exercised)."""
+    calls = []
+
+    def field(t, y, args):
+        calls.append(t)
+        q, x = y
+        omega = jnp.array([0.6 * jnp.cos(t), -0.4, 0.9 * jnp.sin(2.0 * t)]) * args
+        return jq.rate(q, omega, frame="body"), jq.rotate(x, q)
+
+    y0 = (jq.from_rotvec(jnp.array([0.2, 0.1, -0.4])), jnp.array([1.0, -0.5, 0.25]))
+    ts = jnp.linspace(0.0, 3.0, 11)
+
+    def solve(scale, solver, adjoint=None):
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(field),
+            solver,
+            0.0,
+            3.0,
+            0.1,
+            y0,
+            args=scale,
+            saveat=diffrax.SaveAt(ts=ts),
+            stepsize_controller=diffrax.PIDController(rtol=1e-9, atol=1e-9),
+            adjoint=adjoint or diffrax.RecursiveCheckpointAdjoint(),
+        )
+        return sol.ys, sol.stats["num_steps"]
+
+    looped, unrolled = jq.RKMK45(), jq.RKMK45(unroll_stages=True)
+    (q_l, x_l), steps_l = jax.jit(lambda s: solve(s, looped))(1.3)
+    (q_u, x_u), steps_u = jax.jit(lambda s: solve(s, unrolled))(1.3)
+    assert int(steps_l) == int(steps_u) > 10
+    np.testing.assert_allclose(q_l, q_u, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(x_l, x_u, rtol=0, atol=1e-13)
+    # Forward mode (reverse mode through the loop is checked against finite differences above).
+    loss = lambda s, solver: jnp.sum(solve(s, solver, diffrax.ForwardMode())[0][1][-1])  # noqa: E731
+    g_l = jax.jvp(lambda s: loss(s, looped), (1.3,), (1.0,))[1]
+    g_u = jax.jvp(lambda s: loss(s, unrolled), (1.3,), (1.0,))[1]
+    assert abs(g_l - g_u) <= 1e-12 * abs(g_u), (g_l, g_u)
+    # One traced stage in the loop against six unrolled (the first comes from the solver state).
+    term = diffrax.ODETerm(field)
+    for solver, traced in ((looped, 1), (unrolled, 6)):
+        state = solver.init(term, 0.0, 0.1, y0, 1.0)
+        calls.clear()
+        jax.make_jaxpr(lambda y, s, step=solver.step: step(term, 0.0, 0.1, y, 1.0, s, False))(
+            y0, state
+        )
+        assert len(calls) == traced, (solver, len(calls))
+
+
 # ----------------------------------------------------------------------------------------------------
 # Acceptance 6: float32 stays float32
 
