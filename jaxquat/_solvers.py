@@ -643,12 +643,13 @@ class RKMK45(_RKMK, diffrax.AbstractAdaptiveSolver):
     order like Tsit5's own ($|q| = 1$ to round-off). At rtol = atol = 1e-10 on coning its error between
     steps is that at the step ends (a cubic Hermite interpolant was 130× worse there).
 
-    **Stages in a loop.** The five stages after the first are traced once, inside a loop (as diffrax
-    does for its own Runge–Kutta solvers). Measured on a 2-core CPU for the reverse-mode gradient of an
-    adaptive 1,267-step solve of one body: compiled in 12.9 s instead of 30.3 s, run in 108 ms instead
-    of 215 ms. Under `jax.vmap` over many bodies the loop costs run time instead: over 100 bodies the
-    same gradient ran in 2.7 s instead of 1.7 s, and the forward solve of 1,000 bodies in 4.4 s instead
-    of 2.1 s. Pass `RKMK45(unroll_stages=True)` there (the results agree to round-off).
+    **Stages in a loop.** The six stages after the first (which is the previous step's last) are
+    traced once, inside a loop (as diffrax does for its own Runge–Kutta solvers). Measured on a 2-core
+    CPU for the reverse-mode gradient of an adaptive 1,267-step solve of one body: compiled in 12.9 s
+    instead of 30.3 s, run in 108 ms instead of 215 ms. Under `jax.vmap` over many bodies the loop costs
+    run time instead: over 100 bodies the same gradient ran in 2.7 s instead of 1.7 s, and the forward
+    solve of 1,000 bodies in 4.4 s instead of 2.1 s. Pass `RKMK45(unroll_stages=True)` there (the
+    results agree to round-off).
 
     ??? cite "References"
 
