@@ -23,7 +23,10 @@ the augmented state of `diffrax.BacksolveAdjoint`, so RK-type jaxquat solvers wo
 Derivatives: reverse mode (`jax.grad`, `jax.jacrev`) through `diffrax.diffeqsolve` with diffrax's
 default `RecursiveCheckpointAdjoint`; forward mode (`jax.jacfwd`, `jax.jvp`) needs
 `adjoint=diffrax.ForwardMode()` (the default adjoint is a `custom_vjp`, which JAX cannot push
-tangents through). Both give the same derivatives.
+tangents through). Both give the same derivatives. `diffrax.BacksolveAdjoint` (RK-type solvers)
+differentiates the ODE, which keeps |q0|, and cannot see the first step normalising a non-unit q0:
+it returns the gradient at q0/|q0| without the normalisation's Jacobian (wrong by 0.77 in a test
+where |q0| = 1.3). If q0 may be off the sphere, differentiate through `jaxquat.normalize(q0)`.
 """
 
 from __future__ import annotations
