@@ -328,8 +328,11 @@ def to_euler(q: ArrayLike, seq: str) -> Array:
 
     The quaternion algorithm of Bernardes & Bewley (2022), "Quaternion to Euler angles conversion:
     A direct, general and computationally efficient method", PLoS ONE 17(11): e0276302, as SciPy
-    implements it. The first and third angles lie in [−π, π]; the middle one in [0, π] for proper Euler
-    sequences (`zxz`, …) and in [−π/2, π/2] for Tait–Bryan ones (`xyz`, …). Within 1e-7 of gimbal lock
+    implements it, except that the Tait–Bryan middle angle comes from its sine and cosine: SciPy
+    subtracts π/2 from a proper-Euler angle, an absolute error of ~eps·π/4 (6e-8 rad in float32,
+    all of an angle below ~1e-7), where here small angles keep their relative accuracy.
+    The first and third angles lie in [−π, π]; the middle one in [0, π] for proper Euler sequences
+    (`zxz`, …) and in [−π/2, π/2] for Tait–Bryan ones (`xyz`, …). Within 1e-7 of gimbal lock
     (middle angle 0 or π; ±π/2 for Tait–Bryan; at π, in float32, within 4π·eps ≈ 1.5e-6, the
     resolution of float32 there) the split between first and third angle is not unique:
     as SciPy does, the third angle is set to 0 — without SciPy's warning, since values are not
@@ -362,9 +365,9 @@ def to_euler(q: ArrayLike, seq: str) -> Array:
         a, b, c, d = w - qj, qi + sign * qk, qj + w, sign * qk - qi
     half_sum = safe_atan2(b, a)
     half_diff = safe_atan2(d, c)
-    middle = 2.0 * jnp.arctan2(
-        safe_norm(jnp.stack([c, d], axis=-1)), safe_norm(jnp.stack([a, b], axis=-1))
-    )
+    norm_ab = safe_norm(jnp.stack([a, b], axis=-1))
+    norm_cd = safe_norm(jnp.stack([c, d], axis=-1))
+    middle = 2.0 * jnp.arctan2(norm_cd, norm_ab)
     # SciPy's 1e-7; at π widened to a few ulp of π, where the dtype cannot resolve 1e-7 (float32).
     # Near 0 float32 resolves far less than 1e-7, so the lock there keeps SciPy's threshold.
     lock_eps_pi = max(_GIMBAL_LOCK_EPS, 4.0 * math.pi * float(jnp.finfo(middle.dtype).eps))
@@ -381,7 +384,10 @@ def to_euler(q: ArrayLike, seq: str) -> Array:
         first = third_sign * jnp.where(regular, half_sum + half_diff, locked)
         third = jnp.where(regular, half_sum - half_diff, zero)
     if not symmetric:
-        middle = middle - 0.5 * jnp.pi
+        # Not `middle − π/2`: that cancels near a Tait–Bryan middle angle of 0 (absolute error
+        # ~eps·π/4, all of a float32 angle below ~1e-6). Its sine and cosine times 2|q|² instead:
+        # |c, d|² − |a, b|² = 4(w q_j − sign q_i q_k) without cancellation, and 2|a, b||c, d|.
+        middle = jnp.arctan2(4.0 * (w * qj - sign * qi * qk), 2.0 * norm_ab * norm_cd)
     angles = jnp.stack([first, middle, third], axis=-1)
     # Every angle is in [−2π, 2π]; one wrap into [−π, π] as SciPy does (±π are both kept).
     two_pi = 2.0 * jnp.pi

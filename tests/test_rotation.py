@@ -531,6 +531,21 @@ def test_to_euler_float32_near_zero_middle_angle_is_not_locked():
         assert quat_distance(jq.from_euler(seq, ours), q) < 5e-7
 
 
+@pytest.mark.parametrize("seq", ["xyz", "zyx", "yzx", "XZY", "ZXY", "YXZ"])
+def test_to_euler_float32_small_tait_bryan_angles_keep_their_relative_accuracy(seq):
+    """The Tait–Bryan middle angle is not `proper middle − π/2` (which rounds to a multiple of
+    float32's spacing near π/2, 6e-8, and lost every angle below ~1e-6): SciPy in float64 on the same
+    float32 quaternions, rotations of 1e-9 to 1e-3 rad, to float32 round-off relative to the angle."""
+    rng = np.random.default_rng(11)
+    for scale in (1e-9, 1e-7, 1e-5, 1e-3):
+        q = Rotation.from_rotvec(scale * rng.normal(size=(100, 3))).as_quat(scalar_first=True)
+        q = q.astype(np.float32)
+        theirs = Rotation.from_quat(q.astype(np.float64), scalar_first=True).as_euler(seq)
+        ours = np.asarray(jq.to_euler(q, seq), np.float64)
+        assert ours.dtype == np.float64 and jq.to_euler(q, seq).dtype == jnp.float32
+        np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-3 * scale)
+
+
 # --- Extreme magnitudes: a quaternion of any normal magnitude is still a rotation ----------------------
 
 _EXTREME = [
