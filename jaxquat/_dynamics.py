@@ -23,7 +23,7 @@ from jaxtyping import Array, ArrayLike
 from ._algebra import conjugate
 from ._integrate import (
     LIE_METHODS,
-    _check_scalar,
+    _check_finite_scalar,
     _check_steps,
     compensated_lie_step,
     lie_step,
@@ -529,8 +529,8 @@ def simulate_rigid_body(
     q0, omega0, _ = broadcast_batch(
         (q0, 1, "q0"), (omega0, 1, "omega0"), (inertia, _inertia_rank(inertia), "inertia")
     )
-    dt = _check_scalar(dt, "dt").astype(dtype)
-    t0 = _check_scalar(t0, "t0").astype(dtype)
+    dt = _check_finite_scalar(dt, "dt").astype(dtype)
+    t0 = _check_finite_scalar(t0, "t0").astype(dtype)
 
     compensated, renormalize_every = long_run_options(method, dtype, compensated, renormalize_every)
 
@@ -730,8 +730,8 @@ def simulate_deformable_body(
         raise ValueError(f"`masses` must have shape (n,); got shape {tuple(masses.shape)}.")
     _check_nonempty(masses.shape[0])
     dtype = q0.dtype  # the orientation's dtype governs, as in `integrate`
-    t0 = _check_scalar(t0, "t0").astype(dtype)
-    dt = _check_scalar(dt, "dt").astype(dtype)
+    t0 = _check_finite_scalar(t0, "t0").astype(dtype)
+    dt = _check_finite_scalar(dt, "dt").astype(dtype)
     try:  # a nested list is an array too (as in the integration below)
         shape = jax.eval_shape(lambda t: jnp.asarray(positions(t)), t0).shape
     except (TypeError, ValueError) as e:  # None: "None is not a valid value for jnp.array"

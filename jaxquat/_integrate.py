@@ -742,6 +742,14 @@ def _check_scalar(x: ArrayLike, name: str) -> Array:
     return x
 
 
+def _check_finite_scalar(x: ArrayLike, name: str) -> Array:
+    """`_check_scalar`, then `_check_finite` of `x` as given: under `jit` a Python number or a
+    closed-over array is still known, although its conversion to an array is already traced."""
+    checked = _check_scalar(x, name)
+    _check_finite(x, name)
+    return checked
+
+
 def _check_magnus_omega(omega: Callable, method: str, t, q: Array) -> None:
     """A `ValueError` for a Magnus `method` with an `omega(t, q)` that depends on q (`integrate` and
     `simulate_ensemble`)."""
@@ -891,8 +899,8 @@ def integrate(
         method, q0.dtype, compensated, renormalize_every
     )
     dt_given, t0_given = dt, t0
-    dt = _check_finite(_check_scalar(dt, "dt"), "dt")
-    t0 = _check_finite(_check_scalar(t0, "t0"), "t0")
+    dt = _check_finite_scalar(dt, "dt")
+    t0 = _check_finite_scalar(t0, "t0")
     if not callable(omega):
         omega = check_trailing(omega, 3, "omega")
     # Samples on the integration grid (same dt and t0, known before tracing) are fed to the scan as
@@ -907,7 +915,7 @@ def integrate(
         omega = Sampled(
             omega.omegas,
             _check_scalar(omega.dt, "dt"),
-            _check_finite(_check_scalar(omega.t0, "t0"), "t0"),
+            _check_finite_scalar(omega.t0, "t0"),
         )
         # Sample lookups by time allow the round-off of the coarsest time given (see `Sampled._index`).
         time_eps = max(_eps_of(x) for x in (dt, t0, omega.dt, omega.t0))

@@ -51,7 +51,7 @@ from ._integrate import (
     _GL4_OUTER,
     _GL4_SPREAD,
     _STAGE_FRACTIONS,
-    _check_scalar,
+    _check_finite_scalar,
     _depends_on,
     _depends_on_q,
     magnus6_exponent,
@@ -212,7 +212,7 @@ def corrected_vector_field(
 
     At ω = 0 the factor is its series (value ½, correct gradient); see `jaxquat.corrected_rate`.
     """
-    dt = _check_scalar(dt, "dt")
+    dt = _check_finite_scalar(dt, "dt")
     return _make_field(omega, dt, frame)
 
 

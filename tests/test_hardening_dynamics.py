@@ -4,6 +4,8 @@ Every bad input raises a `ValueError` at trace time (also under `jax.jit`) namin
 was expected; valid inputs near the rejected ones keep working.
 """
 
+import functools
+
 import diffrax
 import jax
 import jax.numpy as jnp
@@ -51,6 +53,37 @@ def test_scalar_dt_still_works_under_jit_and_vmap():
 def test_corrected_vector_field_array_dt_names_dt():
     with pytest.raises(ValueError, match=r"`dt` must be a scalar"):
         jq.corrected_vector_field(OMEGA, jnp.array([0.1, 0.2]))
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -np.inf, jnp.array(jnp.nan)])
+def test_non_finite_dt_and_t0_name_the_argument(bad):
+    """A NaN or infinite step or start time is an error, not an all-NaN trajectory (the simulations
+    used to return one), also when it is a constant under `jit` (`integrate` used to miss that)."""
+
+    def positions(t):
+        return jnp.eye(3) * (1.0 + 0.1 * t)
+
+    calls = {
+        "integrate": lambda **kw: jq.integrate(
+            Q0, OMEGA, kw.get("dt", 0.1), 3, t0=kw.get("t0", 0.0), save="final"
+        )[None],
+        "simulate_rigid_body": lambda **kw: jq.simulate_rigid_body(
+            Q0, OMEGA, MOMENTS, kw.get("dt", 0.1), 3, t0=kw.get("t0", 0.0)
+        ),
+        "simulate_deformable_body": lambda **kw: jq.simulate_deformable_body(
+            jnp.ones(3), positions, Q0, kw.get("dt", 0.1), 3, t0=kw.get("t0", 0.0)
+        ),
+    }
+    for name, call in calls.items():
+        for argument in ("dt", "t0"):
+            kwargs = {argument: bad}
+            with pytest.raises(ValueError, match=rf"`{argument}` must be finite"):
+                call(**kwargs)
+            with pytest.raises(ValueError, match=rf"`{argument}` must be finite"):
+                jax.jit(functools.partial(call, **kwargs))()  # a constant under jit: still checked
+        assert np.all(np.isfinite(np.asarray(call()[0]))), name
+    with pytest.raises(ValueError, match=r"`dt` must be finite"):
+        jq.corrected_vector_field(OMEGA, bad)
 
 
 # --------------------------------------------------------------------------------------------------
