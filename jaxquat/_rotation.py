@@ -385,7 +385,7 @@ def to_euler(q: ArrayLike, seq: str) -> Array:
         third = jnp.where(regular, half_sum - half_diff, zero)
     if not symmetric:
         # Not `middle − π/2`: that cancels near a Tait–Bryan middle angle of 0 (absolute error
-        # ~eps·π/4, all of a float32 angle below ~1e-6). Its sine and cosine times 2|q|² instead:
+        # ~eps·π/4, all of a float32 angle below ~1e-7). Its sine and cosine times 2|q|² instead:
         # |c, d|² − |a, b|² = 4(w q_j − sign q_i q_k) without cancellation, and 2|a, b||c, d|.
         middle = jnp.arctan2(4.0 * (w * qj - sign * qi * qk), 2.0 * norm_ab * norm_cd)
     angles = jnp.stack([first, middle, third], axis=-1)
