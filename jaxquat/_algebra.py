@@ -15,6 +15,7 @@ from ._numerics import (
     check_shape,
     check_trailing,
     cos_half,
+    eager_jit,
     power_of_two_times,
     prescale,
     scaled_norm,
@@ -48,6 +49,7 @@ def _split(q: Array) -> tuple[Array, Array, Array, Array]:
     return q[..., 0], q[..., 1], q[..., 2], q[..., 3]
 
 
+@eager_jit()
 def multiply(p: ArrayLike, q: ArrayLike) -> Array:
     """Hamilton product p ⊗ q (i² = j² = k² = ijk = −1).
 
@@ -77,6 +79,7 @@ def multiply(p: ArrayLike, q: ArrayLike) -> Array:
     )
 
 
+@eager_jit()
 def conjugate(q: ArrayLike) -> Array:
     """The conjugate q* = w − xi − yj − zk."""
     q = check_trailing(q, 4, "q")
@@ -84,12 +87,14 @@ def conjugate(q: ArrayLike) -> Array:
     return jnp.concatenate([q[..., :1], -q[..., 1:]], axis=-1)
 
 
+@eager_jit()
 def norm(q: ArrayLike) -> Array:
     """The Euclidean norm |q| = √(w² + x² + y² + z²), shape `(...)`. Gradient 0 at q = 0; NaN in, NaN out."""
     q = check_trailing(q, 4, "q")
     return scaled_norm(q)  # |q| of any finite q the dtype holds, no overflow
 
 
+@eager_jit()
 def inverse(q: ArrayLike) -> Array:
     """The inverse q⁻¹ = q*/|q|² (for unit quaternions, the conjugate). NaN for q = 0."""
     q = check_trailing(q, 4, "q")
@@ -97,6 +102,7 @@ def inverse(q: ArrayLike) -> Array:
     return power_of_two_times(conjugate(q) / sum_squares(q, keepdims=True), -e[..., None])
 
 
+@eager_jit()
 def normalize(q: ArrayLike) -> Array:
     """q/|q|, the unit quaternion of the same rotation, for any finite q the dtype holds (|q|² is not
     formed from q itself when it would overflow or underflow). NaN for q = 0 (nothing is invented),
@@ -110,6 +116,7 @@ def unit_quaternion(q: Array) -> Array:
     return q / jnp.sqrt(sum_squares(q, keepdims=True))
 
 
+@eager_jit()
 def dot(p: ArrayLike, q: ArrayLike) -> Array:
     """The 4-vector dot product w₁w₂ + x₁x₂ + y₁y₂ + z₁z₂, shape `(...)`."""
     p = check_trailing(p, 4, "p")
@@ -118,18 +125,21 @@ def dot(p: ArrayLike, q: ArrayLike) -> Array:
     return jnp.sum(p * q, axis=-1)
 
 
+@eager_jit()
 def from_vector(v: ArrayLike) -> Array:
     """The pure quaternion ṽ = (0, v) of a 3-vector v (the seed's equation vectorToQuat)."""
     v = check_trailing(v, 3, "v")
     return jnp.concatenate([jnp.zeros_like(v[..., :1]), v], axis=-1)
 
 
+@eager_jit()
 def vector_part(q: ArrayLike) -> Array:
     """The vector (imaginary) part (x, y, z) of q, shape `(..., 3)`."""
     q = check_trailing(q, 4, "q")
     return q[..., 1:]
 
 
+@eager_jit()
 def exp(q: ArrayLike) -> Array:
     """The quaternion exponential exp(w + v) = eʷ (cos|v| + sin|v| v/|v|).
 
@@ -154,6 +164,7 @@ def exp(q: ArrayLike) -> Array:
     return jnp.concatenate([w[..., None], xyz], axis=-1)
 
 
+@eager_jit()
 def log(q: ArrayLike) -> Array:
     """The quaternion logarithm log(q) = (ln|q|, atan2(|v|, w) v/|v|), principal branch.
 

@@ -23,6 +23,7 @@ from ._numerics import (
     check_shape,
     check_trailing,
     cross,
+    eager_jit,
     is_tracer,
     scaled_norm,
     sum_squares,
@@ -32,6 +33,7 @@ from ._numerics import (
 from ._rotation import from_rotvec, to_rotvec
 
 
+@eager_jit()
 def angle_between(p: ArrayLike, q: ArrayLike) -> Array:
     r"""The geodesic angle θ ∈ [0, π] of the rotation taking `p` to `q`.
 
@@ -74,6 +76,7 @@ def angle_between(p: ArrayLike, q: ArrayLike) -> Array:
     return 2.0 * jnp.arctan2(scaled_norm(vector), w * jnp.sign(w))
 
 
+@eager_jit()
 def slerp(p: ArrayLike, q: ArrayLike, t: ArrayLike) -> Array:
     r"""Spherical linear interpolation along the shortest arc: $p \exp(t \log(p^* q))$.
 
@@ -100,6 +103,7 @@ def slerp(p: ArrayLike, q: ArrayLike, t: ArrayLike) -> Array:
     return multiply(p, from_rotvec(t[..., None] * relative))
 
 
+@eager_jit()
 def squad(p: ArrayLike, a: ArrayLike, b: ArrayLike, q: ArrayLike, t: ArrayLike) -> Array:
     r"""Shoemake's spherical quadrangle interpolation between `p` (t = 0) and `q` (t = 1).
 
@@ -126,6 +130,7 @@ def squad(p: ArrayLike, a: ArrayLike, b: ArrayLike, q: ArrayLike, t: ArrayLike) 
     return slerp(slerp(p, q, t), slerp(a, b, t), 2.0 * t * (1.0 - t))
 
 
+@eager_jit()
 def squad_control_points(previous: ArrayLike, current: ArrayLike, following: ArrayLike) -> Array:
     r"""The inner `squad` control point at the key `current` between its neighbours.
 
@@ -151,6 +156,7 @@ def squad_control_points(previous: ArrayLike, current: ArrayLike, following: Arr
     return multiply(current, from_rotvec(-0.25 * (forward + backward)))
 
 
+@eager_jit()
 def canonicalize(q: ArrayLike) -> Array:
     """The representative of ±q with w ≥ 0 (ties at w = 0 broken like SciPy: first non-zero of x, y, z
     positive).

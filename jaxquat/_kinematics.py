@@ -14,6 +14,7 @@ from ._numerics import (
     broadcast_batch,
     check_frame,
     check_trailing,
+    eager_jit,
     sum_squares,
     tan_half_over,
 )
@@ -26,6 +27,7 @@ def _apply(q: Array, generator: Array, frame: str) -> Array:
     return multiply(g, q) if frame == "world" else multiply(q, g)
 
 
+@eager_jit(("frame",))
 def rate(q: ArrayLike, omega: ArrayLike, *, frame: str = "world") -> Array:
     """The quaternion rate of change q̇ = ½ ω̃ q (world frame) or ½ q ω̃ (body frame).
 
@@ -46,6 +48,7 @@ def rate(q: ArrayLike, omega: ArrayLike, *, frame: str = "world") -> Array:
     return _apply(q, 0.5 * omega, frame)
 
 
+@eager_jit(("frame",))
 def corrected_rate(q: ArrayLike, omega: ArrayLike, dt: ArrayLike, *, frame: str = "world") -> Array:
     r"""The seed's corrected rate of change $\dot q_{\Delta t} = \frac{\tan(|ω|Δt/2)}{|ω|Δt}\,\tilde ω q$.
 
@@ -76,6 +79,7 @@ def corrected_rate(q: ArrayLike, omega: ArrayLike, dt: ArrayLike, *, frame: str 
     return _apply(q, factor[..., None] * omega, frame)
 
 
+@eager_jit(("frame",))
 def step(q: ArrayLike, omega: ArrayLike, dt: ArrayLike, *, frame: str = "world") -> Array:
     """One corrected step: exp(ωΔt) ⊗ q (world frame) or q ⊗ exp(ωΔt) (body frame).
 
@@ -99,6 +103,7 @@ def step(q: ArrayLike, omega: ArrayLike, dt: ArrayLike, *, frame: str = "world")
     return multiply(increment, q) if frame == "world" else multiply(q, increment)
 
 
+@eager_jit(("frame",))
 def angular_velocity(qs: ArrayLike, dt: ArrayLike, *, frame: str = "world") -> Array:
     """The piecewise-constant angular velocity that `step` maps `qs[k]` to `qs[k + 1]` with.
 

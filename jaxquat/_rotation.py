@@ -18,6 +18,7 @@ from ._numerics import (
     check_trailing,
     cos_half,
     cross,
+    eager_jit,
     prescale,
     safe_atan2,
     safe_norm,
@@ -29,6 +30,7 @@ from ._numerics import (
 )
 
 
+@eager_jit()
 def rotate(v: ArrayLike, q: ArrayLike, center: ArrayLike | None = None) -> Array:
     """Rotate vectors `v` by the quaternion `q` about `center`: v' = q (v − c) q⁻¹ + c.
 
@@ -78,6 +80,7 @@ def _undefined(q: Array) -> Array:
     return jnp.all(q == 0, axis=-1) | jnp.any(jnp.isinf(q), axis=-1)
 
 
+@eager_jit()
 def from_axis_angle(axis: ArrayLike, angle: ArrayLike) -> Array:
     """The unit quaternion (cos(θ/2), sin(θ/2) n̂) of a rotation by `angle` θ about `axis` (right-hand).
 
@@ -104,6 +107,7 @@ def from_axis_angle(axis: ArrayLike, angle: ArrayLike) -> Array:
     return jnp.concatenate([jnp.cos(half)[..., None], jnp.sin(half)[..., None] * unit], axis=-1)
 
 
+@eager_jit()
 def to_axis_angle(q: ArrayLike) -> tuple[Array, Array]:
     """The axis (unit, shape `(..., 3)`) and angle in [0, π] (shape `(...)`) of the rotation q.
 
@@ -138,6 +142,7 @@ def to_axis_angle(q: ArrayLike) -> tuple[Array, Array]:
     )
 
 
+@eager_jit()
 def from_rotvec(r: ArrayLike) -> Array:
     """The unit quaternion exp(r/2) = (cos(|r|/2), sin(|r|/2) r/|r|) of a rotation vector r.
 
@@ -153,6 +158,7 @@ def from_rotvec(r: ArrayLike) -> Array:
     )
 
 
+@eager_jit()
 def to_rotvec(q: ArrayLike) -> Array:
     """The rotation vector r (|r| ≤ π) of the rotation q; `q` need not be unit (any finite nonzero
     magnitude; q = 0 or an infinite component gives NaN).
@@ -169,6 +175,7 @@ def to_rotvec(q: ArrayLike) -> Array:
     return jnp.where(undefined[..., None], jnp.nan, r)
 
 
+@eager_jit()
 def to_matrix(q: ArrayLike) -> Array:
     """The 3×3 rotation matrix R with R v = q v q⁻¹; `q` need not be unit (uses 2/|q|², after
     scaling an extreme q by a power of two so that |q|² neither overflows nor underflows).
@@ -190,18 +197,21 @@ def to_matrix(q: ArrayLike) -> Array:
     return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
 
 
+@eager_jit()
 def from_xyzw(q: ArrayLike) -> Array:
     """Reorder a scalar-last quaternion (x, y, z, w) (SciPy's default, ROS) to jaxquat's (w, x, y, z)."""
     q = check_trailing(q, 4, "q")
     return jnp.roll(q, 1, axis=-1)
 
 
+@eager_jit()
 def to_xyzw(q: ArrayLike) -> Array:
     """Reorder (w, x, y, z) to scalar-last (x, y, z, w)."""
     q = check_trailing(q, 4, "q")
     return jnp.roll(q, -1, axis=-1)
 
 
+@eager_jit()
 def from_matrix(m: ArrayLike) -> Array:
     r"""The unit quaternion (w ≥ 0) of the rotation matrix nearest to `m` in the Frobenius norm.
 
@@ -293,6 +303,7 @@ def _hamilton(p: Array, q: Array) -> Array:
     return jnp.concatenate([w, pw * qv + qw * pv + cross(pv, qv)], axis=-1)
 
 
+@eager_jit(("seq",))
 def from_euler(seq: str, angles: ArrayLike) -> Array:
     """The unit quaternion of Euler angles, with SciPy's sequences and case rule.
 
@@ -323,6 +334,7 @@ def from_euler(seq: str, angles: ArrayLike) -> Array:
 _GIMBAL_LOCK_EPS = 1e-7
 
 
+@eager_jit(("seq",))
 def to_euler(q: ArrayLike, seq: str) -> Array:
     r"""Euler angles of the rotation q for the sequence `seq` (SciPy's conventions and ranges).
 
@@ -397,6 +409,7 @@ def to_euler(q: ArrayLike, seq: str) -> Array:
     return jnp.where(undefined[..., None], jnp.nan, angles)
 
 
+@eager_jit()
 def from_two_vectors(a: ArrayLike, b: ArrayLike) -> Array:
     r"""The shortest rotation taking the direction of `a` to the direction of `b`.
 

@@ -2,7 +2,7 @@
 transformation checks (STYLE.md rule 16, issue 2 acceptance 3 and 4):
 
 - batch shapes `()`, `(1,)`, `(3, 1, 2)` equal a loop over single elements; leading axes broadcast;
-- `jit` equals eager, `vmap` equals a loop;
+- `jit` equals eager (op by op), `vmap` equals a loop;
 - float32 in gives float32 out (and agrees with float64);
 - `jacfwd` == `jacrev` == central finite differences at random points, exactly at the singular point
   (identity / zero rotation vector / ω = 0), at 1e-12 and 1e-6 from it and near angle π; float64 to
@@ -374,8 +374,12 @@ def _compiled(fn, *args):
 
 
 def _eager_loop(entry, args):
-    """Eager, element by element: the reference (points stacked on axis 0)."""
-    return np.stack([np.asarray(entry.fn(*(a[n] for a in args))) for n in range(args[0].shape[0])])
+    """Eager, element by element and op by op (`jax.disable_jit`: the public functions' compilation of
+    eager calls, `_numerics.eager_jit`, is off): the reference (points stacked on axis 0)."""
+    with jax.disable_jit():
+        return np.stack(
+            [np.asarray(entry.fn(*(a[n] for a in args))) for n in range(args[0].shape[0])]
+        )
 
 
 @pytest.mark.parametrize("entry", REGISTRY, ids=lambda e: e.name)
@@ -401,7 +405,7 @@ def test_batching_jit_vmap_dtype(entry):
     out_grid, out_ones, out32 = _compiled(transformed, grid, ones, args32)
     assert out_grid.shape == (3, 1, 2) + reference.shape[1:] and out_grid.dtype == jnp.float64
     if broadcast:  # element (i, 0, k) pairs the first argument's element 2i + k with the others' k
-        expected = np.stack(
+        expected = np.stack(  # (compiled per element: the loop above checked op-by-op evaluation)
             [
                 np.asarray(entry.fn(args[0][2 * i + k], *(a[k] for a in args[1:])))
                 for i in range(3)
