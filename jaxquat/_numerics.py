@@ -392,7 +392,7 @@ def _jit_argument(x) -> bool:
     concrete JAX array, a NumPy array or scalar of numbers, a Python number, or None."""
     if x is None or isinstance(x, (bool, int, float, complex)):
         return True
-    if isinstance(x, jax.core.Tracer):
+    if is_tracer(x):
         return False
     if isinstance(x, jax.Array):
         return True
