@@ -121,6 +121,37 @@ def test_w4_dense_sweeps_name_series_that_run():
         assert set(dict(quick.w4_sweeps)[name]) <= set(values), name
 
 
+def test_quick_w4_sweeps_bracket_the_target_error():
+    """The quick preset runs three step counts of each fixed-step `integrate` method (each is a
+    compilation); the two finest must bracket 1e-8 rad with some room, or the time at the target
+    would come out as "at most" or "not reached" instead of interpolated."""
+    integrate, _ = _bench._load_integrate()
+    q0 = jnp.asarray(_bench.coning_exact(0.0))
+    exact = _bench.coning_exact(_bench.CONING_END)
+    quick = dict(_bench.PRESETS["quick"].w4_sweeps)
+    for name, steps in _bench._W4_QUICK_STEPS.items():
+        assert quick[name] == steps
+        errors = [
+            float(
+                _bench.angle_error(
+                    integrate(
+                        q0,
+                        lambda t, q=None: _bench.coning_omega(t, jnp),
+                        _bench.CONING_END / n,
+                        n,
+                        method=name.split()[-1],
+                        save="final",
+                    ),
+                    exact,
+                )
+            )
+            for n in steps
+        ]
+        assert errors == sorted(errors, reverse=True), (name, errors)
+        target = _bench.W4_TARGET_ERROR
+        assert errors[-1] < 0.97 * target and errors[-2] > 1.03 * target, (name, errors)
+
+
 def test_w5_reference_gradient_matches_the_closed_form():
     # The hand-written loop (the reference gradient of W5) against the gradient of the closed form.
     problem = _bench.make_problem("W1", "float64", 4, 30)
