@@ -275,9 +275,10 @@ def read_observations_csv(path: str):
         if not line or line.startswith("#"):
             continue
         fields = [_unquote(f.strip()) for f in line.split(",")]
-        if len(fields) == 1 and (";" in line or "\t" in line):
-            # Another separator (a spreadsheet export): neither a wrong header nor one column.
-            separator = ";" if ";" in line else "\t"
+        if len(fields) == 1 and (";" in line or len(line.split()) > 1):
+            # Another separator (a spreadsheet export, or columns separated by spaces or tabs):
+            # neither a wrong header nor one column.
+            separator = ";" if ";" in line else "\t" if "\t" in line else " "
             raise CommandLineError(
                 f"{path} line {number}: columns must be separated by commas, got {separator!r}"
             )

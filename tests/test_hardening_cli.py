@@ -697,7 +697,7 @@ def test_csv_line_numbers_count_only_line_ends(tmp_path, capsys, separator):
 
 
 @pytest.mark.parametrize("header", [True, False])
-@pytest.mark.parametrize("separator", [";", "\t"])
+@pytest.mark.parametrize("separator", [";", "\t", " "])
 def test_csv_with_another_separator_says_so(tmp_path, capsys, separator, header):
     times, qs = _observations(6)
     lines = [line.replace(",", separator) for line in _csv_lines(times, qs)]
