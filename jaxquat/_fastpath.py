@@ -280,9 +280,9 @@ def _constant_trajectory(q0, rotation, num_steps, frame, renormalize_every):
     """q_k = r^k ⊗ q₀ (world; q₀ ⊗ r^k in the body frame) for k = 0 … T, time-major `(T + 1, *batch, 4)`.
 
     Blocked by the associativity of the product: with K ≈ √(T + 1) and k = jK + i, q_k = r^i ⊗ Q_j
-    (world) with Q_j = r^(jK) ⊗ q₀, a short scan. The powers of r = w + v all lie in the plane of 1
-    and v, r^i = a_i + b_i v with a_i = T_i(w), b_i = U_(i−1)(w) (Chebyshev polynomials; no division,
-    so no singularity at ω = 0), so
+    (world) with Q_j = r^(jK) ⊗ q₀. The powers of r = w + v all lie in the plane of 1 and v,
+    r^i = a_i + b_i v with a_i = T_i(w), b_i = U_(i−1)(w) (Chebyshev polynomials; no division, so no
+    singularity at ω = 0), so
 
         q_(jK+i) = a_i Q_j + b_i (v ⊗ Q_j)        (world;  a_i Q_j + b_i (Q_j ⊗ v) in the body frame)
 
@@ -294,42 +294,58 @@ def _constant_trajectory(q0, rotation, num_steps, frame, renormalize_every):
     T = 1,000, float64): 0.32 s against 0.44 s per call; a scan writing one `(N, 4)` slice per step ran
     at less than half that speed.
 
+    The block rows lie in the same plane: r^(jK) = A_j + B_j b_K v by the same recurrence with
+    r^K = a_K + b_K v as its step, two numbers per body and block, so with u = v ⊗ q₀ (body: q₀ ⊗ v)
+    and v ⊗ v = −|v|²,
+
+        Q_j = A_j q₀ + B_j b_K u,        v ⊗ Q_j = A_j u − B_j b_K |v|² q₀
+
+    (the same in the body frame), one elementwise pass after a scan of two numbers. Against a scan of
+    the quaternions Q_j (four numbers, four products per step): the same values to 5e-15, 4 % less
+    time per W2 call (medians 0.210 s against 0.219 s, 25 interleaved rounds), and in float32 at small
+    |ω|Δt up to 40× less round-off (T = 10⁴, |ω|Δt ≈ 1e-6: 1.5e-7 against 6.3e-6).
+
     Renormalisation: rotations keep the norm, so stepping's q_k is r^k ⊗ q₀ before the first
     renormalisation (step `renormalize_every`) and r^k ⊗ q₀/|q₀| from it on; the rows from that step on
     are scaled by 1/|q₀| (values and derivatives, including the radial part of dq₀, as stepping's).
-    Each Q_j is rescaled to |q₀| against round-off drift.
+    Each r^(jK) is then rescaled to unit norm, A_j² + B_j² b_K² |v|² = 1, against round-off drift
+    (without it the error grew from 2e-15 to 7e-14 at T = 1,000 in float64).
     """
     length = num_steps + 1
     block = max(1, math.isqrt(length))
     num_blocks = -(-length // block)
     w, vx, vy, vz = rotation
     v_sq = vx * vx + vy * vy + vz * vz
+    one, zero = jnp.ones_like(w), jnp.zeros_like(w)
 
     def next_power(c, _):
         return _next_power(c, w, v_sq), c
 
-    (a_block, b_block), (a, b) = lax.scan(
-        next_power, (jnp.ones_like(w), jnp.zeros_like(w)), None, length=block
-    )
-    step_block = (a_block, b_block * vx, b_block * vy, b_block * vz)  # r^K
+    (a_block, b_block), (a, b) = lax.scan(next_power, (one, zero), None, length=block)
     every = renormalize_every
     renormalized = every is not None and every <= num_steps
-    norm0 = jnp.sqrt(sum(c * c for c in q0))
+    # r^K = a_K + b_K v = a_K + v', with |v'|² = b_K² |v|².
+    block_sq = b_block * b_block * v_sq
 
-    def advance_block(c, _):
-        nxt = _act_soa(c, step_block, frame)
+    def next_block(c, _):
+        nxt = _next_power(c, a_block, block_sq)
         if renormalized:
-            size = jnp.sqrt(sum(x * x for x in nxt))
-            nxt = tuple(x * (norm0 / size) for x in nxt)
+            size = jnp.sqrt(nxt[0] * nxt[0] + nxt[1] * nxt[1] * block_sq)
+            nxt = (nxt[0] / size, nxt[1] / size)
         return nxt, c
 
-    _, starts = lax.scan(advance_block, q0, None, length=num_blocks)  # Q_j
-    axis = tuple(x[None] for x in (jnp.zeros_like(vx), vx, vy, vz))
-    turned = _act_soa(starts, axis, frame)  # v ⊗ Q_j (world), Q_j ⊗ v (body)
-    starts, turned = _stack(starts)[:, None], _stack(turned)[:, None]  # (J, 1, *batch, 4)
+    _, (big_a, big_b) = lax.scan(next_block, (one, zero), None, length=num_blocks)  # (J, *batch)
+    big_b = big_b * b_block[None]
+    u = _act_soa(q0, (zero, vx, vy, vz), frame)  # v ⊗ q₀ (world), q₀ ⊗ v (body)
+    q0s, us = _stack(q0)[None], _stack(u)[None]
+    big_a, big_b = big_a[..., None], big_b[..., None]
+    starts = big_a * q0s + big_b * us  # Q_j
+    turned = big_a * us - (big_b * v_sq[None, ..., None]) * q0s  # v ⊗ Q_j (world), Q_j ⊗ v (body)
+    starts, turned = starts[:, None], turned[:, None]  # (J, 1, *batch, 4)
     out = a[None, ..., None] * starts + b[None, ..., None] * turned  # (J, K, *batch, 4)
     out = out.reshape((num_blocks * block,) + out.shape[2:])[:length]
     if renormalized:
+        norm0 = jnp.sqrt(sum(c * c for c in q0))
         steps = jnp.arange(length).reshape((length,) + (1,) * (norm0.ndim + 1))
         factor = jnp.where(steps >= every, 1.0 / norm0[None, ..., None], 1.0)
         out = out * factor.astype(out.dtype)
