@@ -19,6 +19,8 @@ loop is restructured, as measured in benchmarks/README.md:
   it (|ω|Δt ≤ 0.5); if one is not, the run is made again with sin/cos;
 - renormalisation every `renormalize_every` steps happens between groups of steps, not as a
   per-step select;
+- float32's default compensated mode (Kahan-summed increments) runs in the same kernels for sampled
+  ω's final state (`_sampled_step`), its derivatives by the same rules;
 - `save="all"`: a constant ω's trajectory is formed blockwise (`_constant_trajectory`); with sampled
   ω the loop writes each step into the time-major output (no concatenation).
 
@@ -40,7 +42,7 @@ from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
 from jaxtyping import Array
 
-from ._numerics import cos_half, sinc_half
+from ._numerics import cos_half, cos_half_minus_one, sinc_half
 
 # The series is used when θ² = |ω|²Δt² ≤ this for every step of the run (θ ≤ 0.5 rad per step).
 SERIES_MAX_THETA_SQ = 0.25
@@ -359,14 +361,42 @@ def _constant_trajectory(q0, rotation, num_steps, frame, renormalize_every):
     return out
 
 
-def _sampled_step(h, series: bool, frame: str):
+def _sampled_step(h, series: bool, frame: str, compensated: bool = False):
     """One Lie–Euler step with the per-step sample x (its three components): exp(x h) acting on a
-    structure-of-arrays carry."""
+    structure-of-arrays carry. `compensated`: the carry is (q, c) and the step is the float32
+    long-run mode of `integrate` (docs/numerics.md §5), q ← q + δ with δ = (exp(x h) − 1) ⊗ q
+    (world; q ⊗ (exp(x h) − 1) in the body frame) added by Kahan summation with the compensation
+    c, exp(φ) − 1 = (cos(θ/2) − 1, S φ) formed without cancellation."""
 
-    def step(carry, x):
-        return _act_soa(carry, _exp_soa(tuple(h * c for c in x), series), frame)
+    if not compensated:
 
-    return step
+        def step(carry, x):
+            return _act_soa(carry, _exp_soa(tuple(h * c for c in x), series), frame)
+
+        return step
+
+    def kahan(carry, x):
+        q, c = carry
+        delta = _act_soa(q, _exp_minus_one_soa(tuple(h * u for u in x), series), frame)
+        y = tuple(d - e for d, e in zip(delta, c, strict=True))
+        total = tuple(a + b for a, b in zip(q, y, strict=True))
+        return total, tuple((t - a) - b for t, a, b in zip(total, q, y, strict=True))
+
+    return kahan
+
+
+def _exp_minus_one_soa(phi, series: bool):
+    """exp(φ) − 1 = (cos(θ/2) − 1, S φ), θ = |φ|, S = sin(θ/2)/θ, without cancellation: the series
+    in θ² (`series`, for θ² ≤ SERIES_MAX_THETA_SQ) or −2 sin²(θ/4) from sin/cos."""
+    x, y, z = phi
+    theta_sq = x * x + y * y + z * z
+    if series:
+        real = theta_sq * _horner(_series_coefficients(theta_sq.dtype, "cos")[1:], theta_sq)
+        imag = _horner(_series_coefficients(theta_sq.dtype, "sinc"), theta_sq)
+    else:
+        real = cos_half_minus_one(theta_sq)
+        imag = sinc_half(theta_sq)
+    return real, imag * x, imag * y, imag * z
 
 
 def _over_steps(
@@ -729,8 +759,10 @@ def _sampled_adjoint_jvp(
     return jax.jvp(one_step_per_kernel, primals, tangents)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(5, 6, 7, 8))
-def _sampled_final(q_given, q0, samples, h, indices, series, frame, num_steps, renormalize_every):
+@functools.partial(jax.custom_jvp, nondiff_argnums=(5, 6, 7, 8, 9))
+def _sampled_final(
+    q_given, q0, samples, h, indices, series, frame, num_steps, renormalize_every, compensated
+):
     """The final state of the sampled Lie–Euler run, step k using samples[indices[k]], with the
     exponential's series in θ² (`series`) or sin/cos; `q_given` is that state when it has been
     computed already (the value is returned as it is, without derivative of its own), else None.
@@ -750,7 +782,17 @@ def _sampled_final(q_given, q0, samples, h, indices, series, frame, num_steps, r
     """
     if q_given is not None:
         return q_given
-    return _sampled_run(q0, samples, h, indices, series, frame, num_steps, renormalize_every)[0]
+    return _sampled_run(
+        q0,
+        samples,
+        h,
+        indices,
+        series,
+        frame,
+        num_steps,
+        renormalize_every,
+        compensated=compensated,
+    )[0]
 
 
 def _group_size(series: bool, indices) -> int:
@@ -759,12 +801,35 @@ def _group_size(series: bool, indices) -> int:
     return UNROLL if series and indices is None else 1
 
 
-def _sampled_run(q0, samples, h, indices, series, frame, num_steps, renormalize_every, unroll=None):
+def _sampled_run(
+    q0,
+    samples,
+    h,
+    indices,
+    series,
+    frame,
+    num_steps,
+    renormalize_every,
+    unroll=None,
+    compensated=False,
+):
     """The run of `_sampled_final` and, with the series (`series`), the largest θ² of its steps (else
-    0); `unroll` steps per kernel, by default `_group_size`. Never differentiated itself."""
-    step = _sampled_step(h, series, frame)
+    0); `unroll` steps per kernel, by default `_group_size`; `compensated`: `integrate`'s float32
+    long-run mode (Kahan-summed increments, the compensation reset at each renormalisation). Never
+    differentiated itself."""
+    step = _sampled_step(h, series, frame, compensated)
     read = _read(samples, indices)
     q = _split(q0, 4)
+    renormalize = _normalize
+    if compensated:
+        q = (q, tuple(jnp.zeros_like(c) for c in q))
+
+        def renormalize(qc):
+            return _normalize(qc[0]), tuple(jnp.zeros_like(c) for c in qc[1])
+
+    def state(final):
+        return _stack(final[0] if compensated else final)
+
     unroll = _group_size(series, indices) if unroll is None else unroll
     if not series:
         final = _over_steps(
@@ -772,10 +837,10 @@ def _sampled_run(q0, samples, h, indices, series, frame, num_steps, renormalize_
             q,
             num_steps,
             renormalize_every,
-            _normalize,
+            renormalize,
             unroll=unroll,
         )
-        return _stack(final), jnp.zeros((), q0.dtype)
+        return state(final), jnp.zeros((), q0.dtype)
 
     def tracked(carry, k):
         q, largest = carry
@@ -785,22 +850,22 @@ def _sampled_run(q0, samples, h, indices, series, frame, num_steps, renormalize_
 
     final, largest = _over_steps(
         _stepwise(tracked),
-        (q, jnp.zeros_like(q[0])),
+        (q, jnp.zeros_like(q0[..., 0])),
         num_steps,
         renormalize_every,
-        lambda c: (_normalize(c[0]), c[1]),
+        lambda c: (renormalize(c[0]), c[1]),
         unroll=unroll,
     )
-    return _stack(final), jnp.max(largest, initial=0.0)
+    return state(final), jnp.max(largest, initial=0.0)
 
 
-def _sampled_final_jvp(series, frame, num_steps, renormalize_every, primals, tangents):
+def _sampled_final_jvp(series, frame, num_steps, renormalize_every, compensated, primals, tangents):
     from jax.custom_derivatives import SymbolicZero
 
     q_given, q0, samples, h, indices = primals
     # The primal by this function itself (free when the state is given): derivatives of higher order
     # then go through this rule again, never through the run's unrolled loop.
-    q_final = _sampled_final(*primals, series, frame, num_steps, renormalize_every)
+    q_final = _sampled_final(*primals, series, frame, num_steps, renormalize_every, compensated)
     names = tuple(
         name
         for name, t in zip(("q0", "samples", "h"), tangents[1:4], strict=True)
@@ -910,8 +975,8 @@ def _rotation_sums(matrix, count: int):
     return jnp.stack(total, axis=-1).reshape(matrix.shape)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(3, 4, 5, 6))
-def _constant_final(q0, omega, h, frame, num_steps, renormalize_every, unroll):
+@functools.partial(jax.custom_jvp, nondiff_argnums=(3, 4, 5, 6, 7))
+def _constant_final(q0, omega, h, frame, num_steps, renormalize_every, unroll, compensated=False):
     """q_T = r^T ⊗ q₀ (world; q₀ ⊗ r^T in the body frame), r = exp(ω h), by stepping the powers of r.
 
     Its derivative is the closed form of the product's derivative rather than the derivative of the
@@ -919,6 +984,10 @@ def _constant_final(q0, omega, h, frame, num_steps, renormalize_every, unroll):
     q̇_T = (H ζ) ⊗ q_T + r^T ⊗ q̇₀ with H = Σ_{m<T} R(r)^m formed by doubling in O(log T). Reverse
     mode then costs about one forward pass and stores nothing per step (W5). The steps are the same
     products, so this is the derivative of the computed result to round-off (O(Tε)).
+
+    `compensated` (float32's default long-run mode): the powers advance by their increments,
+    r^(k+1) − r^k = r^k ⊗ (r − 1) = (a (w − 1) − b |v|²) + (a + b (w − 1)) v with w − 1 formed without
+    cancellation, Kahan-summed (the compensation reset at each renormalisation).
     """
     # Every power of r = w + v lies in the plane of 1 and v: r^k = a_k + b_k v (`_next_power`, the
     # step's product restricted to that plane). Stepping those two components and applying r^T once
@@ -932,14 +1001,33 @@ def _constant_final(q0, omega, h, frame, num_steps, renormalize_every, unroll):
         norm = jnp.sqrt(a * a + b * b * v_sq)
         return a / norm, b / norm
 
-    a, b = _over_steps(
-        _stepwise(lambda c, _: _next_power(c, w, v_sq)),
-        (jnp.ones_like(w), jnp.zeros_like(w)),
-        num_steps,
-        renormalize_every,
-        normalize,
-        unroll=unroll,
-    )
+    if compensated:
+        w_minus_one = cos_half_minus_one(jnp.sum((omega * h) ** 2, axis=-1))
+
+        def kahan(c, _):
+            (a, b), (ca, cb) = c
+            ya = a * w_minus_one - b * v_sq - ca
+            yb = a + b * w_minus_one - cb
+            ta, tb = a + ya, b + yb
+            return (ta, tb), ((ta - a) - ya, (tb - b) - yb)
+
+        (a, b), _ = _over_steps(
+            _stepwise(kahan),
+            ((jnp.ones_like(w), jnp.zeros_like(w)), (jnp.zeros_like(w), jnp.zeros_like(w))),
+            num_steps,
+            renormalize_every,
+            lambda c: (normalize(c[0]), (jnp.zeros_like(w), jnp.zeros_like(w))),
+            unroll=unroll,
+        )
+    else:
+        a, b = _over_steps(
+            _stepwise(lambda c, _: _next_power(c, w, v_sq)),
+            (jnp.ones_like(w), jnp.zeros_like(w)),
+            num_steps,
+            renormalize_every,
+            normalize,
+            unroll=unroll,
+        )
     # Renormalised stepping ends at r^T ⊗ q₀/|q₀| (rotations keep the norm), unrenormalised at r^T ⊗ q₀.
     start = _split(q0, 4)
     if renormalize_every is not None and renormalize_every <= num_steps:
@@ -950,13 +1038,17 @@ def _constant_final(q0, omega, h, frame, num_steps, renormalize_every, unroll):
 
 
 @_constant_final.defjvp
-def _constant_final_jvp(frame, num_steps, renormalize_every, unroll, primals, tangents):
+def _constant_final_jvp(
+    frame, num_steps, renormalize_every, unroll, compensated, primals, tangents
+):
     from ._algebra import conjugate, inverse, multiply
     from ._rotation import from_rotvec, to_matrix, to_rotvec
 
     q0, omega, h = primals
     dq0, domega, dh = tangents
-    q_final = _constant_final(q0, omega, h, frame, num_steps, renormalize_every, unroll)
+    q_final = _constant_final(
+        q0, omega, h, frame, num_steps, renormalize_every, unroll, compensated
+    )
     # The step rotation and its tangent, through the same (series-switched) exponential.
     phi, dphi = omega * h, domega * h + omega * dh
     r, dr = jax.jvp(lambda p: _stack(_exp_soa(_split(p, 3), False)), (phi,), (dphi,))
@@ -1008,8 +1100,9 @@ def integrate_fast(
     aligned=False,
     time_eps=None,
 ):
-    """`integrate` for `method="euler"` with a constant ω array or `jaxquat.sampled` data, uncompensated,
-    saving the final state or every step; `None` for anything else.
+    """`integrate` for `method="euler"` with a constant ω array or `jaxquat.sampled` data, uncompensated
+    (sampled ω's final state also compensated, the float32 default), saving the final state or every
+    step; `None` for anything else.
 
     Arguments as validated by `integrate` (q0, dt, t0 arrays; ω an array `(..., 3)` or a callable).
     Nothing here is differentiated through a loop (the final states have derivative rules of their
@@ -1018,7 +1111,10 @@ def integrate_fast(
     """
     from ._integrate import Sampled
 
-    if method != "euler" or compensated or save_every != 1 or num_steps < 1:
+    if method != "euler" or save_every != 1 or num_steps < 1:
+        return None
+    # The float32 long-run mode (`compensated`) has fast paths for the final state.
+    if compensated and save != "final":
         return None
     if isinstance(omega, Sampled):
         if omega.omegas.shape[0] < num_steps or jnp.dtype(omega.omegas.dtype) != jnp.dtype(
@@ -1048,6 +1144,7 @@ def integrate_fast(
         num_steps=num_steps,
         frame=frame,
         save=save,
+        compensated=bool(compensated),
         renormalize_every=renormalize_every,
         unroll=max(unroll, POWERS_UNROLL),
         on_grid=aligned,
@@ -1068,6 +1165,7 @@ def _integrate_fast(
     num_steps,
     frame,
     save,
+    compensated,
     renormalize_every,
     unroll,
     on_grid,
@@ -1090,7 +1188,9 @@ def _integrate_fast(
             return _constant_trajectory(
                 _split(q0, 4), rotation, num_steps, frame, renormalize_every
             )
-        return _constant_final(q0, omega, h, frame, num_steps, renormalize_every, unroll)
+        return _constant_final(
+            q0, omega, h, frame, num_steps, renormalize_every, unroll, compensated
+        )
 
     # Step k uses sample indices[k], by the module's own zero-order-hold rule at the step's start, timed
     # from the first sample (small offsets, not large absolute times; a backward step holds the sample
@@ -1118,7 +1218,9 @@ def _integrate_fast(
         # too, and stay NaN). Derivatives come from `_sampled_final`'s rule for the branch taken
         # (so only one adjoint runs); the unrolled run itself is never differentiated.
         constants = lax.stop_gradient((q0, samples, h))
-        q, largest = _sampled_run(*constants, indices, True, frame, num_steps, renormalize_every)
+        q, largest = _sampled_run(
+            *constants, indices, True, frame, num_steps, renormalize_every, compensated=compensated
+        )
 
         def final(series):
             def run(q_given, q0, samples, h):
@@ -1132,6 +1234,7 @@ def _integrate_fast(
                     frame,
                     num_steps,
                     renormalize_every,
+                    compensated,
                 )
 
             return run

@@ -838,7 +838,11 @@ def integrate(
     $δ = (R − 1) ⊗ q$ with $R − 1 = (−2\sin^2(θ/4), \sin(θ/2)\,\hat n)$ in Kahan-compensated summation
     and renormalise every `renormalize_every` steps (docs/numerics.md §5): 10⁶ steps of 10⁻³ rad stay within
     ~1e-4 rad instead of 1e-3–1e-2 for plain stepping. The default `None` switches it on for float32
-    (and float16) states; the baselines `"naive"` and `"rk4"` do not have it.
+    (and float16) states; the baselines `"naive"` and `"rk4"` do not have it. With `"euler"` and a
+    constant ω array or `jaxquat.sampled` ω, the final state in this mode runs on the fast paths
+    (kernels of grouped steps, the same derivative rules) as the plain mode does: N = 10⁵ bodies ×
+    1,000 steps in 78 ms instead of 1.6 s (sampled) and 17 ms instead of 239 ms (constant), measured
+    2026-11-27; `save="all"` in this mode uses the general scan.
 
     **Arguments:**
 
