@@ -19,8 +19,9 @@ loop is restructured, as measured in benchmarks/README.md:
   it (|ω|Δt ≤ 0.5); if one is not, the run is made again with sin/cos;
 - renormalisation every `renormalize_every` steps happens between groups of steps, not as a
   per-step select;
-- float32's default compensated mode (Kahan-summed increments) runs in the same kernels for sampled
-  ω's final state (`_sampled_step`), its derivatives by the same rules;
+- float32's default compensated mode (Kahan-summed increments) runs on the same paths, for the final
+  states (`_sampled_step`, `_constant_final`) and a constant ω's trajectory, with the same
+  derivative rules;
 - `save="all"`: a constant ω's trajectory is formed blockwise (`_constant_trajectory`); with sampled
   ω the loop writes each step into the time-major output (no concatenation).
 
@@ -285,7 +286,7 @@ def _next_power(c, w, v_sq):
     return a * w - b * v_sq, a + b * w
 
 
-def _constant_trajectory(q0, rotation, num_steps, frame, renormalize_every):
+def _constant_trajectory(q0, rotation, num_steps, frame, renormalize_every, w_minus_one=None):
     """q_k = r^k ⊗ q₀ (world; q₀ ⊗ r^k in the body frame) for k = 0 … T, time-major `(T + 1, *batch, 4)`.
 
     Blocked by the associativity of the product: with K ≈ √(T + 1) and k = jK + i, q_k = r^i ⊗ Q_j
@@ -319,6 +320,9 @@ def _constant_trajectory(q0, rotation, num_steps, frame, renormalize_every):
     are scaled by 1/|q₀| (values and derivatives, including the radial part of dq₀, as stepping's).
     Each r^(jK) is then rescaled to unit norm, A_j² + B_j² b_K² |v|² = 1, against round-off drift
     (without it the error grew from 2e-15 to 7e-14 at T = 1,000 in float64).
+
+    `w_minus_one` (w − 1 without cancellation) selects float32's compensated mode: both tables then
+    hold (a − 1, b), advanced by Kahan-summed increments (docs/numerics.md §5).
     """
     length = num_steps + 1
     block = max(1, math.isqrt(length))
@@ -327,24 +331,56 @@ def _constant_trajectory(q0, rotation, num_steps, frame, renormalize_every):
     v_sq = vx * vx + vy * vy + vz * vz
     one, zero = jnp.ones_like(w), jnp.zeros_like(w)
 
-    def next_power(c, _):
-        return _next_power(c, w, v_sq), c
-
-    (a_block, b_block), (a, b) = lax.scan(next_power, (one, zero), None, length=block)
     every = renormalize_every
     renormalized = every is not None and every <= num_steps
-    # r^K = a_K + b_K v = a_K + v', with |v'|² = b_K² |v|².
-    block_sq = b_block * b_block * v_sq
+    if w_minus_one is not None:
+        # Compensated (float32's long-run mode): both tables hold (a − 1, b), advanced by the
+        # increments (a(w − 1) − b|v|², a + b(w − 1)) in Kahan summation; when renormalising, each
+        # block row is rescaled to unit norm as below, by the increments of (a, b) ↦ (a, b)/|r|:
+        # (a − 1) − (a − 1 − δ)/|r| and b(1 − 1/|r|) with δ = |r| − 1 = (2(a − 1) + (a − 1)² +
+        # b²|v|²)/(1 + |r|) (no cancellation), Kahan-summed too.
+        def powers(step_minus_one, step_sq, count, unit=False):
+            def kahan(c, _):
+                (alpha, b), (ca, cb) = c
+                ya = alpha * step_minus_one + step_minus_one - b * step_sq - ca
+                yb = (1.0 + alpha) + b * step_minus_one - cb
+                ta, tb = alpha + ya, b + yb
+                ca, cb = (ta - alpha) - ya, (tb - b) - yb
+                if unit:
+                    size = jnp.sqrt((1.0 + ta) * (1.0 + ta) + tb * tb * step_sq)
+                    excess = (2.0 * ta + ta * ta + tb * tb * step_sq) / (1.0 + size)
+                    shrink = excess / size  # 1 − 1/|r|
+                    ya, yb = -ta * shrink - excess / size - ca, -tb * shrink - cb
+                    sa, sb = ta + ya, tb + yb
+                    ta, tb, ca, cb = sa, sb, (sa - ta) - ya, (sb - tb) - yb
+                return ((ta, tb), (ca, cb)), (alpha, b)
 
-    def next_block(c, _):
-        nxt = _next_power(c, a_block, block_sq)
-        if renormalized:
-            size = jnp.sqrt(nxt[0] * nxt[0] + nxt[1] * nxt[1] * block_sq)
-            nxt = (nxt[0] / size, nxt[1] / size)
-        return nxt, c
+            (last, _), (alpha, b) = lax.scan(
+                kahan, ((zero, zero), (zero, zero)), None, length=count
+            )
+            return last, 1.0 + alpha, b
 
-    _, (big_a, big_b) = lax.scan(next_block, (one, zero), None, length=num_blocks)  # (J, *batch)
-    big_b = big_b * b_block[None]
+        (alpha_block, b_block), a, b = powers(w_minus_one, v_sq, block)
+        block_sq = b_block * b_block * v_sq
+        _, big_a, big_b = powers(alpha_block, block_sq, num_blocks, unit=renormalized)
+    else:
+
+        def next_power(c, _):
+            return _next_power(c, w, v_sq), c
+
+        (a_block, b_block), (a, b) = lax.scan(next_power, (one, zero), None, length=block)
+        # r^K = a_K + b_K v = a_K + v', with |v'|² = b_K² |v|².
+        block_sq = b_block * b_block * v_sq
+
+        def next_block(c, _):
+            nxt = _next_power(c, a_block, block_sq)
+            if renormalized:
+                size = jnp.sqrt(nxt[0] * nxt[0] + nxt[1] * nxt[1] * block_sq)
+                nxt = (nxt[0] / size, nxt[1] / size)
+            return nxt, c
+
+        _, (big_a, big_b) = lax.scan(next_block, (one, zero), None, length=num_blocks)
+    big_b = big_b * b_block[None]  # (J, *batch)
     u = _act_soa(q0, (zero, vx, vy, vz), frame)  # v ⊗ q₀ (world), q₀ ⊗ v (body)
     q0s, us = _stack(q0)[None], _stack(u)[None]
     big_a, big_b = big_a[..., None], big_b[..., None]
@@ -1101,8 +1137,8 @@ def integrate_fast(
     time_eps=None,
 ):
     """`integrate` for `method="euler"` with a constant ω array or `jaxquat.sampled` data, uncompensated
-    (sampled ω's final state also compensated, the float32 default), saving the final state or every
-    step; `None` for anything else.
+    (also compensated, the float32 default, except a sampled ω's whole trajectory), saving the final
+    state or every step; `None` for anything else.
 
     Arguments as validated by `integrate` (q0, dt, t0 arrays; ω an array `(..., 3)` or a callable).
     Nothing here is differentiated through a loop (the final states have derivative rules of their
@@ -1113,8 +1149,9 @@ def integrate_fast(
 
     if method != "euler" or save_every != 1 or num_steps < 1:
         return None
-    # The float32 long-run mode (`compensated`) has fast paths for the final state.
-    if compensated and save != "final":
+    # The float32 long-run mode (`compensated`) has fast paths for the final state, and for the
+    # whole trajectory of a constant ω.
+    if compensated and save != "final" and (isinstance(omega, Sampled) or callable(omega)):
         return None
     if isinstance(omega, Sampled):
         if omega.omegas.shape[0] < num_steps or jnp.dtype(omega.omegas.dtype) != jnp.dtype(
@@ -1185,8 +1222,11 @@ def _integrate_fast(
         omega = jnp.broadcast_to(omega.astype(dtype), batch + (3,))
         if save == "all":
             rotation = _exp_soa(_split(omega * h, 3), False)
+            minus_one = None
+            if compensated:
+                minus_one = cos_half_minus_one(jnp.sum((omega * h) ** 2, axis=-1))
             return _constant_trajectory(
-                _split(q0, 4), rotation, num_steps, frame, renormalize_every
+                _split(q0, 4), rotation, num_steps, frame, renormalize_every, minus_one
             )
         return _constant_final(
             q0, omega, h, frame, num_steps, renormalize_every, unroll, compensated
