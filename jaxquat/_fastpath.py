@@ -43,7 +43,7 @@ from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
 from jaxtyping import Array
 
-from ._numerics import cos_half, cos_half_minus_one, sinc_half
+from ._numerics import compensated_add, cos_half, cos_half_minus_one, sinc_half
 
 # The series is used when θ² = |ω|²Δt² ≤ this for every step of the run (θ ≤ 0.5 rad per step).
 SERIES_MAX_THETA_SQ = 0.25
@@ -342,17 +342,16 @@ def _constant_trajectory(q0, rotation, num_steps, frame, renormalize_every, w_mi
         def powers(step_minus_one, step_sq, count, unit=False):
             def kahan(c, _):
                 (alpha, b), (ca, cb) = c
-                ya = alpha * step_minus_one + step_minus_one - b * step_sq - ca
-                yb = (1.0 + alpha) + b * step_minus_one - cb
-                ta, tb = alpha + ya, b + yb
-                ca, cb = (ta - alpha) - ya, (tb - b) - yb
+                ta, ca = compensated_add(
+                    alpha, alpha * step_minus_one + step_minus_one - b * step_sq, ca
+                )
+                tb, cb = compensated_add(b, (1.0 + alpha) + b * step_minus_one, cb)
                 if unit:
                     size = jnp.sqrt((1.0 + ta) * (1.0 + ta) + tb * tb * step_sq)
                     excess = (2.0 * ta + ta * ta + tb * tb * step_sq) / (1.0 + size)
                     shrink = excess / size  # 1 − 1/|r|
-                    ya, yb = -ta * shrink - excess / size - ca, -tb * shrink - cb
-                    sa, sb = ta + ya, tb + yb
-                    ta, tb, ca, cb = sa, sb, (sa - ta) - ya, (sb - tb) - yb
+                    ta, ca = compensated_add(ta, -ta * shrink - excess / size, ca)
+                    tb, cb = compensated_add(tb, -tb * shrink, cb)
                 return ((ta, tb), (ca, cb)), (alpha, b)
 
             (last, _), (alpha, b) = lax.scan(
@@ -414,11 +413,15 @@ def _sampled_step(h, series: bool, frame: str, compensated: bool = False):
     def kahan(carry, x):
         q, c = carry
         delta = _act_soa(q, _exp_minus_one_soa(tuple(h * u for u in x), series), frame)
-        y = tuple(d - e for d, e in zip(delta, c, strict=True))
-        total = tuple(a + b for a, b in zip(q, y, strict=True))
-        return total, tuple((t - a) - b for t, a, b in zip(total, q, y, strict=True))
+        pairs = [compensated_add(*args) for args in zip(q, delta, c, strict=True)]
+        return tuple(p[0] for p in pairs), tuple(p[1] for p in pairs)
 
     return kahan
+
+
+def _step_minus_one(omega, h):
+    """w − 1 = cos(θ/2) − 1 of the step rotation exp(ω h), θ = |ω h|, without cancellation."""
+    return cos_half_minus_one(jnp.sum((omega * h) ** 2, axis=-1))
 
 
 def _exp_minus_one_soa(phi, series: bool):
@@ -1038,14 +1041,13 @@ def _constant_final(q0, omega, h, frame, num_steps, renormalize_every, unroll, c
         return a / norm, b / norm
 
     if compensated:
-        w_minus_one = cos_half_minus_one(jnp.sum((omega * h) ** 2, axis=-1))
+        w_minus_one = _step_minus_one(omega, h)
 
         def kahan(c, _):
             (a, b), (ca, cb) = c
-            ya = a * w_minus_one - b * v_sq - ca
-            yb = a + b * w_minus_one - cb
-            ta, tb = a + ya, b + yb
-            return (ta, tb), ((ta - a) - ya, (tb - b) - yb)
+            next_a, ca = compensated_add(a, a * w_minus_one - b * v_sq, ca)
+            next_b, cb = compensated_add(b, a + b * w_minus_one, cb)
+            return (next_a, next_b), (ca, cb)
 
         (a, b), _ = _over_steps(
             _stepwise(kahan),
@@ -1151,7 +1153,7 @@ def integrate_fast(
         return None
     # The float32 long-run mode (`compensated`) has fast paths for the final state, and for the
     # whole trajectory of a constant ω.
-    if compensated and save != "final" and (isinstance(omega, Sampled) or callable(omega)):
+    if compensated and save != "final" and isinstance(omega, Sampled):
         return None
     if isinstance(omega, Sampled):
         if omega.omegas.shape[0] < num_steps or jnp.dtype(omega.omegas.dtype) != jnp.dtype(
@@ -1222,9 +1224,7 @@ def _integrate_fast(
         omega = jnp.broadcast_to(omega.astype(dtype), batch + (3,))
         if save == "all":
             rotation = _exp_soa(_split(omega * h, 3), False)
-            minus_one = None
-            if compensated:
-                minus_one = cos_half_minus_one(jnp.sum((omega * h) ** 2, axis=-1))
+            minus_one = _step_minus_one(omega, h) if compensated else None
             return _constant_trajectory(
                 _split(q0, 4), rotation, num_steps, frame, renormalize_every, minus_one
             )

@@ -45,6 +45,7 @@ from ._numerics import (
     check_choice,
     check_frame,
     check_trailing,
+    compensated_add as _compensated_add,
     cos_half_minus_one,
     cross,
     is_tracer,
@@ -431,13 +432,6 @@ def renormalized_when_due(index, q: Array, c: Array | None, every: int) -> tuple
         return unit_quaternion(q), None if c is None else jnp.zeros_like(c)
 
     return lax.cond(due, renormalize, lambda qc: qc, (q, c))
-
-
-def _compensated_add(q: Array, delta: Array, c: Array) -> tuple[Array, Array]:
-    """q + δ by Kahan summation with the running compensation `c`: the new (q, c)."""
-    y = delta - c
-    s = q + y
-    return s, (s - q) - y
 
 
 # ----------------------------------------------------------------------------------------------------

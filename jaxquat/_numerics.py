@@ -303,6 +303,13 @@ def sinc_half(theta_sq: ArrayLike) -> Array:
     )
 
 
+def compensated_add(q: Array, delta: Array, c: Array) -> tuple[Array, Array]:
+    """q + δ by Kahan summation with the running compensation `c`: the new (q, c)."""
+    y = delta - c
+    s = q + y
+    return s, (s - q) - y
+
+
 def cos_half_minus_one(theta_sq: ArrayLike) -> Array:
     """cos(θ/2) − 1 without cancellation, computed as −2 sin²(θ/4) = −(θ²/2)·(2 sin(θ/4)/θ)².
 
