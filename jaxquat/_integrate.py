@@ -836,8 +836,8 @@ def integrate(
     constant ω array or `jaxquat.sampled` ω, the final state in this mode runs on the fast paths
     (kernels of grouped steps, the same derivative rules) as the plain mode does: N = 10⁵ bodies ×
     1,000 steps in 78 ms instead of 1.6 s (sampled) and 17 ms instead of 239 ms (constant), measured
-    2026-11-27; so does a constant ω's whole trajectory (112 ms instead of 465 ms). Sampled ω with
-    `save="all"` in this mode uses the general scan.
+    2026-11-27; so do the whole trajectories (`save="all"`): 112 ms instead of 465 ms for a constant
+    ω, 0.37 s instead of 2.0 s for sampled ω.
 
     **Arguments:**
 
