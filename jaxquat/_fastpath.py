@@ -240,8 +240,9 @@ def _run_all(step, carry, num_steps, renormalize_every, compensated=False):
     `step(carry, k)` takes step k (reading its own sample).
 
     The scan runs T + 1 iterations and saves the carry *before* each step, so q₀ is in place and no
-    concatenation copies the trajectory; the last step's result is discarded (its sample index, T,
-    is clamped by the read). Against T iterations over the samples as xs followed by a
+    concatenation copies the trajectory; the last step's result is discarded (the caller's `step`
+    reads step T − 1's sample again there: a sample the run does not use, NaN say, would otherwise
+    make every reverse-mode derivative NaN through 0 · NaN). Against T iterations over the samples as xs followed by a
     concatenation (issue 8, N = 2·10⁴, T = 1,000, float64): 130 ms against 207–259 ms per call,
     `jax.grad` 1.04 s against 1.28–1.33 s with the same gradient, and at N = 10⁵ in float32 the xs
     form's gradient ran out of 24 GiB where this one took 2.4 s. The whole trajectory is stored
@@ -1289,8 +1290,14 @@ def _integrate_fast(
         if compensated:
             start = (start, tuple(jnp.zeros_like(c) for c in start))
         read = _read(samples, indices)
+        # (The discarded step T rereads step T − 1's sample, not sample T, which the run does not use.)
+        last = num_steps - 1
         return _run_all(
-            lambda c, k: step(c, read(k)), start, num_steps, renormalize_every, compensated
+            lambda c, k: step(c, read(jnp.minimum(k, last))),
+            start,
+            num_steps,
+            renormalize_every,
+            compensated,
         )
 
     def trajectory_on_grid(samples):

@@ -677,11 +677,13 @@ def sampled(omegas: ArrayLike, dt: ArrayLike, *, t0: ArrayLike = 0.0) -> Sampled
     first stage sits at the step's start, a boundary that then reads the sample after it (0.12 rad
     off over one backward step) — and count time from the first sample (`t0=0`) in float32.
 
-    **Reverse mode.** When `integrate` runs on the sampling grid (its `dt` and `t0` equal these, as
-    Python numbers or concrete arrays), the samples are scanned over as per-step inputs and the gradient
-    w.r.t. `omegas` costs O(T). Otherwise each step looks its sample up by time, and reverse mode adds a
-    full-size cotangent per step (O(T²) for long runs) — sample on the integration grid when you
-    differentiate long runs.
+    **Reverse mode.** With `integrate`'s default `method="euler"` the gradient w.r.t. `omegas` costs
+    O(T) on the sampling grid and off it (each step reads its sample by index, and its cotangent is
+    added in place). With the other methods this holds when `integrate` runs on the sampling grid
+    (its `dt` and `t0` equal these, as Python numbers or concrete arrays): the samples are then
+    scanned over as per-step inputs. Otherwise each step looks its sample up by time, and reverse
+    mode adds a full-size cotangent per step (O(T²) for long runs) — sample on the integration grid
+    when you differentiate long runs with them.
 
     **Returns:** a `Sampled` module, `Sampled(t, q) -> omegas[k]`.
     """

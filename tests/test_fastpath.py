@@ -365,3 +365,42 @@ def test_float32_default_compensated_trajectory_of_sampled_omega(
     for a, b in zip(g32, g64, strict=True):
         assert a.dtype == jnp.float32
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-4 * float(jnp.max(jnp.abs(b))))
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+@pytest.mark.parametrize("unused", [np.nan, np.inf, 1e30])
+def test_trajectory_gradient_ignores_a_sample_the_run_does_not_use(dtype, unused):
+    """More samples than steps, the first unused one non-finite or huge: `save="all"` with sampled ω
+    must not read it, not even in the loop's last, discarded iteration, where reverse mode would
+    multiply its NaN derivative by a zero cotangent and spread NaN through every step. Gradients
+    w.r.t. the samples and q₀ agree with the general scan's (ω through a callable) and with central
+    finite differences (float64)."""
+    num_steps, dt = 4, 0.1
+    rng = np.random.default_rng(41)
+    given = rng.normal(size=(num_steps + 2, 2, 3))
+    given[num_steps] = unused
+    samples = jnp.asarray(given, dtype)
+    q0 = jnp.asarray(Rotation.random(2, random_state=42).as_quat(scalar_first=True), dtype)
+    weights = jnp.asarray(rng.normal(size=(num_steps + 1, 2, 4)), dtype)
+    rate = jq.sampled(samples, dt)
+
+    def loss(s, q, general=False):
+        omega = jq.sampled(s, dt)
+        if general:
+            omega = lambda t, q, omega=omega: omega(t, q)  # noqa: E731
+        return jnp.sum(jq.integrate(q, omega, dt, num_steps, save="all") * weights)
+
+    assert "jaxquat_one_kernel" in str(jax.make_jaxpr(loss)(rate.omegas, q0))
+    fast = jax.grad(loss, (0, 1))(samples, q0)
+    general = jax.grad(lambda s, q: loss(s, q, True), (0, 1))(samples, q0)
+    tolerance = 2e-5 if dtype == jnp.float32 else 1e-13
+    for got, expected in zip(fast, general, strict=True):
+        assert np.all(np.isfinite(np.asarray(got)))
+        np.testing.assert_allclose(got, expected, rtol=0, atol=tolerance)
+    assert not np.any(np.asarray(fast[0][num_steps:]))  # unused samples: zero cotangent
+    if dtype == jnp.float64:
+        eps = 1e-6
+        bump = np.zeros(given.shape)
+        bump[1, 0, 2] = eps
+        difference = (loss(samples + bump, q0) - loss(samples - bump, q0)) / (2 * eps)
+        assert abs(float(fast[0][1, 0, 2]) - float(difference)) <= 1e-8
