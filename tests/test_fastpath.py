@@ -178,6 +178,19 @@ def angle_error(got, expected):
     return float(np.max(2.0 * np.arccos(np.clip(cosine, 0.0, 1.0))))
 
 
+def assert_float32_gradient_matches_float64(loss, *args):
+    """`jax.grad` of `loss(*args, dtype)` w.r.t. every argument: float32's (from the float32 args)
+    within 1e-4 of the largest float64 component of float64's (from the same values in float64)."""
+    where = tuple(range(len(args)))
+    g32 = jax.jit(jax.grad(lambda *a: loss(*a, jnp.float32), where))(*args)
+    g64 = jax.jit(jax.grad(lambda *a: loss(*a, jnp.float64), where))(
+        *(a.astype(jnp.float64) for a in args)
+    )
+    for a, b in zip(g32, g64, strict=True):
+        assert a.dtype == jnp.float32
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-4 * float(jnp.max(jnp.abs(b))))
+
+
 @pytest.mark.parametrize("given", ["sampled", "constant"])
 @pytest.mark.parametrize(
     ("frame", "renormalize_every", "step_angle"),
@@ -273,13 +286,7 @@ def test_float32_default_compensated_trajectory_of_a_constant_omega(frame, renor
         )[::600]
         return jnp.sum((path * target.astype(dtype)[None]) ** 2)
 
-    g32 = jax.jit(jax.grad(lambda w, q: loss(w, q, jnp.float32), (0, 1)))(omega, q0)
-    g64 = jax.jit(jax.grad(lambda w, q: loss(w, q, jnp.float64), (0, 1)))(
-        omega.astype(jnp.float64), q0.astype(jnp.float64)
-    )
-    for a, b in zip(g32, g64, strict=True):
-        assert a.dtype == jnp.float32
-        np.testing.assert_allclose(a, b, rtol=0, atol=1e-4 * float(jnp.max(jnp.abs(b))))
+    assert_float32_gradient_matches_float64(loss, omega, q0)
 
 
 @pytest.mark.parametrize(
@@ -358,13 +365,7 @@ def test_float32_default_compensated_trajectory_of_sampled_omega(
         )[::600]
         return jnp.sum((path * target.astype(dtype)[None]) ** 2)
 
-    g32 = jax.jit(jax.grad(lambda s, q: loss(s, q, jnp.float32), (0, 1)))(samples, q0)
-    g64 = jax.jit(jax.grad(lambda s, q: loss(s, q, jnp.float64), (0, 1)))(
-        samples.astype(jnp.float64), q0.astype(jnp.float64)
-    )
-    for a, b in zip(g32, g64, strict=True):
-        assert a.dtype == jnp.float32
-        np.testing.assert_allclose(a, b, rtol=0, atol=1e-4 * float(jnp.max(jnp.abs(b))))
+    assert_float32_gradient_matches_float64(loss, samples, q0)
 
 
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
