@@ -227,6 +227,13 @@ def _normalize(q):
     return w / norm, x / norm, y / norm, z / norm
 
 
+def _renormalized(carry, compensated: bool):
+    """The carry with q/|q|: q itself, or (q, c) with the Kahan compensation c reset (`compensated`)."""
+    if compensated:
+        return _normalize(carry[0]), tuple(jnp.zeros_like(c) for c in carry[1])
+    return _normalize(carry)
+
+
 def _split(a: Array, size: int):
     return tuple(a[..., i] for i in range(size))
 
@@ -242,13 +249,14 @@ def _run_all(step, carry, num_steps, renormalize_every, compensated=False):
     The scan runs T + 1 iterations and saves the carry *before* each step, so q₀ is in place and no
     concatenation copies the trajectory; the last step's result is discarded (the caller's `step`
     reads step T − 1's sample again there: a sample the run does not use, NaN say, would otherwise
-    make every reverse-mode derivative NaN through 0 · NaN). Against T iterations over the samples as xs followed by a
-    concatenation (issue 8, N = 2·10⁴, T = 1,000, float64): 130 ms against 207–259 ms per call,
-    `jax.grad` 1.04 s against 1.28–1.33 s with the same gradient, and at N = 10⁵ in float32 the xs
-    form's gradient ran out of 24 GiB where this one took 2.4 s. The whole trajectory is stored
-    anyway, so nothing is checkpointed. Renormalisation is a conditional, taken only when due (a
-    per-step select took 60–100 ms of a 0.4 s call at N = 10⁵, T = 1,000, float32). `compensated`: the carry is (q, c), q with its Kahan
-    compensation c (`_sampled_step`); q is saved, and a renormalisation resets c.
+    make every reverse-mode derivative NaN through 0 · NaN). Against T iterations over the samples
+    as xs followed by a concatenation (issue 8, N = 2·10⁴, T = 1,000, float64): 130 ms against
+    207–259 ms per call, `jax.grad` 1.04 s against 1.28–1.33 s with the same gradient, and at
+    N = 10⁵ in float32 the xs form's gradient ran out of 24 GiB where this one took 2.4 s. The whole
+    trajectory is stored anyway, so nothing is checkpointed. Renormalisation is a conditional, taken
+    only when due (a per-step select took 60–100 ms of a 0.4 s call at N = 10⁵, T = 1,000,
+    float32). `compensated`: the carry is (q, c), q with its Kahan compensation c
+    (`_sampled_step`); q is saved, and a renormalisation resets c.
     """
     every = (
         renormalize_every
@@ -263,9 +271,7 @@ def _run_all(step, carry, num_steps, renormalize_every, compensated=False):
         return carry
 
     def renormalized(carry):
-        if compensated:
-            return _fused((_normalize(carry[0]), tuple(jnp.zeros_like(c) for c in carry[1])))
-        return _fused(_normalize(carry))
+        return _fused(_renormalized(carry, compensated))
 
     def saved(carry):
         return _stack(carry[0] if compensated else carry)
@@ -855,12 +861,9 @@ def _sampled_run(
     step = _sampled_step(h, series, frame, compensated)
     read = _read(samples, indices)
     q = _split(q0, 4)
-    renormalize = _normalize
     if compensated:
         q = (q, tuple(jnp.zeros_like(c) for c in q))
-
-        def renormalize(qc):
-            return _normalize(qc[0]), tuple(jnp.zeros_like(c) for c in qc[1])
+    renormalize = functools.partial(_renormalized, compensated=compensated)
 
     def state(final):
         return _stack(final[0] if compensated else final)
