@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -113,3 +115,34 @@ SEED_ROTATED = np.array(
     ]
 )
 SEED_ROTATED_CENTRE = np.array([0.40704043526795597, 0.49937491125737676, 0.361996626127267])
+
+
+def mapping_count() -> int | None:
+    """How many memory areas this process has mapped (None where /proc/self/maps is not available):
+    `tests/conftest.py` keeps each worker under the kernel's limit."""
+    try:
+        with open("/proc/self/maps", "rb") as maps:
+            return maps.read().count(b"\n")
+    except OSError:
+        return None
+
+
+_LOWERING = "/jax/core/compile/jaxpr_to_mlir_module_duration"
+
+
+@contextlib.contextmanager
+def count_lowerings():
+    """A list that collects one entry for each program JAX lowers for compilation inside the block,
+    i.e. each miss of its in-memory compilation caches (whether or not the persistent cache then
+    holds the compiled program)."""
+    lowered = []
+
+    def listener(name, duration, **kwargs):
+        if name == _LOWERING:
+            lowered.append(duration)
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        yield lowered
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)

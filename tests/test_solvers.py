@@ -429,26 +429,6 @@ def _directional_fd(loss, p, v, eps=1e-5):
     return (8.0 * (f(eps) - f(-eps)) - (f(2 * eps) - f(-2 * eps))) / (12.0 * eps)
 
 
-@pytest.fixture
-def no_compilation_cache_writes():
-    """The test's programs are compiled but not written to the run's persistent compilation cache
-    (`tests/conftest.py`). In each of four full runs on 2026-11-27 an xdist worker died late in the
-    run under this test's Magnus8 gradient (jax 0.10.2, CPU): twice inside XLA's
-    `executable.serialize()` writing it to the cache (a segmentation fault, an abort), twice inside
-    its compilation (segmentation faults). Rerun on a fresh worker it passed every time, and the
-    crashed worker's last 49 tests, run again in that order in one process, did not crash. Without the writes one of the two
-    places is gone; each solver's programs are compiled once per worker, so the cache saved nothing
-    here. (The threshold is read at each write.) `pyproject.toml` reruns a crashed worker's test."""
-    option = "jax_persistent_cache_min_compile_time_secs"
-    before = getattr(jax.config, option)
-    jax.config.update(option, math.inf)
-    try:
-        yield
-    finally:
-        jax.config.update(option, before)
-
-
-@pytest.mark.usefixtures("no_compilation_cache_writes")
 @pytest.mark.parametrize(
     "solver", [jq.RKMK45(), jq.LieEuler(), jq.Magnus6(frame="world"), jq.Magnus8(frame="world")]
 )
