@@ -459,19 +459,65 @@ def safe_atan2(y: Array, x: Array) -> Array:
     return jnp.where(nonzero, jnp.arctan2(safe_y, safe_x), jnp.zeros_like(x))
 
 
-@jax.custom_jvp
-def _top_eigenvector(k: Array) -> Array:
+@functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
+def _top_eigenvector(k: Array, davenport: bool = False) -> Array:
     """The unit eigenvector of the largest eigenvalue of symmetric matrices `k` of shape `(..., n, n)`.
 
-    Value from `jnp.linalg.eigh` (its sign is arbitrary; callers fix it). Derivative by first-order
-    perturbation theory, dv = (λI − K)⁺ dK v, computed as the solve
+    Value from `jnp.linalg.eigh` (its sign is arbitrary; callers fix it), or with `davenport` from
+    power steps (`_davenport_power`) when they are proven converged for every matrix of the batch.
+    Derivative by first-order perturbation theory, dv = (λI − K)⁺ dK v, computed as the solve
     (λI − K + v vᵀ) dv = (I − v vᵀ) dK v. Unlike differentiating `eigh` itself, this involves only the
     gaps to the *largest* eigenvalue, so it is finite (and NaN-free in reverse mode) when the other
     eigenvalues are degenerate — e.g. the eigenvalues (3, −1, −1, −1) of Davenport's matrix of an exact
     rotation. Requires the largest eigenvalue to be simple.
     """
+    if davenport:
+        power, converged = _davenport_power(k)
+        return jax.lax.cond(jnp.all(converged), lambda k: power, _eigh_top, k)
+    return _eigh_top(k)
+
+
+def _eigh_top(k: Array) -> Array:
     _, vectors = jnp.linalg.eigh(k)
     return vectors[..., :, -1]
+
+
+DAVENPORT_POWER_STEPS = 8
+
+
+def _davenport_power(k: Array) -> tuple[Array, Array]:
+    """The top eigenvector of Davenport's 4×4 matrices K (`_rotation.from_matrix`) of matrices near
+    rotations by power steps, and whether it is proven to be the top one to round-off.
+
+    For M = s R (s > 0), K has the eigenvalues (3s, −s, −s, −s) and ‖K‖_F = √12 s, so
+    B = K + (‖K‖_F/√12) I = 4s q qᵀ has rank one: its column of largest diagonal entry is q (scaled
+    by 4s|q_j| ≥ 2s, Shepperd's choice), and a power step with B gives q from any start not
+    orthogonal to it. For M near a rotation the other eigenvalues of B are small against 4s and each
+    step multiplies the error by their ratio (`DAVENPORT_POWER_STEPS` = 8 reach round-off for
+    matrices 1e-2 from a rotation, entry-wise noise). The result is accepted with two facts, checked
+    per matrix: its residual r = ‖Kq − λq‖ (λ = qᵀKq) is at most 16 ulp of ‖K‖_F, and
+    λ − √(‖K‖_F² − λ²) > ‖K‖_F/4. The second bounds every other eigenvalue μ below λ (μ² ≤
+    ‖K‖_F² − λ²), by a gap g > ‖K‖_F/4, so the angle to the top eigenvector is at most r/g ≤ 64 ulp.
+    Matrices far from rotations fail the check (a batch holding one goes through `eigh`).
+
+    On issue 8's CPU, 10⁵ exact rotations: 9 ms against 95–106 ms for `eigh` (a LAPACK call per
+    matrix), the same quaternions to 4e-16 (float32: 2.3e-7)."""
+    f2 = jnp.sum(k * k, axis=(-2, -1))
+    eye = jnp.broadcast_to(jnp.eye(4, dtype=k.dtype), k.shape)
+    shifted = k + jnp.sqrt(f2 / 12.0)[..., None, None] * eye
+    column = jnp.argmax(jnp.diagonal(shifted, axis1=-2, axis2=-1), axis=-1)
+    q = jnp.take_along_axis(shifted, column[..., None, None], axis=-1)[..., 0]
+    for _ in range(DAVENPORT_POWER_STEPS):
+        q = q / jnp.sqrt(jnp.sum(q * q, axis=-1, keepdims=True))
+        q = jnp.einsum("...ij,...j->...i", shifted, q)
+    q = q / jnp.sqrt(jnp.sum(q * q, axis=-1, keepdims=True))
+    kq = jnp.einsum("...ij,...j->...i", k, q)
+    lam = jnp.sum(q * kq, axis=-1)
+    residual = jnp.sqrt(jnp.sum((kq - lam[..., None] * q) ** 2, axis=-1))
+    size = jnp.sqrt(f2)
+    gap = lam - jnp.sqrt(jnp.maximum(f2 - lam * lam, 0.0))
+    ulp = jnp.finfo(k.dtype).eps
+    return q, (gap > 0.25 * size) & (residual <= 16.0 * ulp * size)
 
 
 def at_least_float32(x: Array) -> Array:
@@ -480,16 +526,17 @@ def at_least_float32(x: Array) -> Array:
     return x.astype(jnp.promote_types(x.dtype, jnp.float32))
 
 
-def top_eigenvector(k: Array) -> Array:
-    """The unit eigenvector of the largest eigenvalue of symmetric matrices `k` (`_top_eigenvector`),
-    computed in at least float32 and returned in the dtype of `k`."""
-    return _top_eigenvector(at_least_float32(k)).astype(k.dtype)
+def top_eigenvector(k: Array, *, davenport: bool = False) -> Array:
+    """The unit eigenvector of the largest eigenvalue of symmetric matrices `k` (`_top_eigenvector`;
+    `davenport`: 4×4 Davenport matrices, usually of rotations), computed in at least float32 and
+    returned in the dtype of `k`."""
+    return _top_eigenvector(at_least_float32(k), davenport).astype(k.dtype)
 
 
 @_top_eigenvector.defjvp
-def _top_eigenvector_jvp(primals, tangents):
+def _top_eigenvector_jvp(davenport, primals, tangents):
     (k,), (dk,) = primals, tangents
-    v = _top_eigenvector(k)
+    v = _top_eigenvector(k, davenport)
     dk = 0.5 * (dk + jnp.swapaxes(dk, -1, -2))
     kv = jnp.einsum("...ij,...j->...i", k, v)
     lam = jnp.sum(v * kv, axis=-1)

