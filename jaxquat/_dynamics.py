@@ -13,6 +13,7 @@ exponentials, the vector part of the state by the matching Runge–Kutta scheme)
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -431,20 +432,36 @@ def compensations(q: Array, x) -> tuple[Array, object]:
     return jnp.zeros_like(q), jax.tree_util.tree_map(jnp.zeros_like, x)
 
 
-def _long_run_scan(method, field, t0, dt, dtype, carry0, num_steps, compensated, every, **kwargs):
+class _LongRun(NamedTuple):
+    """The static options of a simulation's fixed-step run (hashable: a compiled run's key)."""
+
+    method: str
+    num_steps: int
+    save: str
+    save_every: int
+    compensated: bool
+    renormalize_every: int | None
+
+
+def _long_run_scan(run: _LongRun, field, t0, dt, dtype, carry0, output=lambda carry: carry):
     """`scan_steps` of `body_step` from `carry0 = (q0, x0)`; the final carry and the saved ones are
-    `(q, x)` (the compensations, when there are, are not returned)."""
-    if every is not None and every > num_steps:
+    `output((q, x))` (the compensations, when there are, are not returned)."""
+    every = run.renormalize_every
+    if every is not None and every > run.num_steps:
         every = None  # a run shorter than the interval never renormalises: no conditional at all
-    c0 = compensations(*carry0) if compensated else None
+    c0 = compensations(*carry0) if run.compensated else None
 
     def step_fn(k, carry):
         q, x, c = carry
-        return body_step(method, field, _times(t0, dt, k, dtype), q, x, c, dt, k, every)
+        return body_step(run.method, field, _times(t0, dt, k, dtype), q, x, c, dt, k, every)
 
-    output = kwargs.pop("output", lambda carry: carry)
     final, saved = scan_steps(
-        step_fn, (*carry0, c0), num_steps, output=lambda carry: output(carry[:2]), **kwargs
+        step_fn,
+        (*carry0, c0),
+        run.num_steps,
+        save=run.save,
+        save_every=run.save_every,
+        output=lambda carry: output(carry[:2]),
     )
     return final[:2], saved
 
@@ -540,31 +557,19 @@ def simulate_rigid_body(
     t0 = _check_finite_scalar(t0, "t0").astype(dtype)
 
     compensated, renormalize_every = long_run_options(method, dtype, compensated, renormalize_every)
-    run = _rigid_body_run_compiled if _reusable(torque) else _rigid_body_run
-    return run(
-        q0,
-        omega0,
-        inertia,
-        dt,
-        t0,
-        torque,
-        frame=frame,
-        method=method,
-        num_steps=num_steps,
-        save=save,
-        save_every=save_every,
-        compensated=compensated,
-        renormalize_every=renormalize_every,
-    )
+    run = _LongRun(method, num_steps, save, save_every, compensated, renormalize_every)
+    simulate = _rigid_body_run_compiled if _reusable(torque) else _rigid_body_run
+    return simulate(q0, omega0, inertia, dt, t0, torque, frame, run)
 
 
 def _reusable(function) -> bool:
-    """Whether a run with this callable (or None) may be compiled once and reused: None, or an
-    `equinox.Module` whose non-array fields hash and that holds no NumPy array. A Module is immutable and its arrays are traced, so
-    new values reuse the program. A plain function, bound method or `functools.partial` may read
-    state that changes between calls (a global gain, an attribute set to a tracer of an outer
-    `jax.grad`), and JAX's cache, keyed by its identity, would replay the first call's values; such
-    callables run through `_rigid_body_run` uncompiled, traced again at each call."""
+    """Whether a simulation with this callable (a torque, a shape; or None) may be compiled once and
+    reused: None, or an `equinox.Module` whose non-array fields hash and that holds no NumPy array.
+    A Module is immutable and its arrays are traced, so new values reuse the program. A plain
+    function, bound method or `functools.partial` may read state that changes between calls (a
+    global gain, an attribute set to a tracer of an outer `jax.grad`), and JAX's cache, keyed by its
+    identity, would replay the first call's values: such callables run uncompiled, traced again at
+    each call."""
     if function is None:
         return True
     if not isinstance(function, eqx.Module):
@@ -578,38 +583,11 @@ def _reusable(function) -> bool:
     return True
 
 
-def _rigid_body_run(
-    q0,
-    omega0,
-    inertia,
-    dt,
-    t0,
-    torque,
-    *,
-    frame,
-    method,
-    num_steps,
-    save,
-    save_every,
-    compensated,
-    renormalize_every,
-):
+def _rigid_body_run(q0, omega0, inertia, dt, t0, torque, frame: str, run: _LongRun):
     omega_body0 = omega0 if frame == "body" else rotate(omega0, conjugate(q0))
     field = _rigid_body_field(inertia, torque, frame)
-    final, saved = _long_run_scan(
-        method,
-        field,
-        t0,
-        dt,
-        q0.dtype,
-        (q0, omega_body0),
-        num_steps,
-        compensated,
-        renormalize_every,
-        save=save,
-        save_every=save_every,
-    )
-    qs, omegas = final if save == "final" else saved
+    final, saved = _long_run_scan(run, field, t0, dt, q0.dtype, (q0, omega_body0))
+    qs, omegas = final if run.save == "final" else saved
     if frame == "world":
         omegas = rotate(omegas, qs)
     return qs, omegas
@@ -823,38 +801,12 @@ def simulate_deformable_body(
             raise ValueError(
                 f"`angular_momentum` must have shape (3,); got shape {tuple(momentum_world.shape)}."
             )
-    run = _deformable_run_compiled if _reusable(positions) else _deformable_run
-    return run(
-        masses,
-        positions,
-        q0,
-        momentum_world,
-        dt,
-        t0,
-        method=method,
-        num_steps=num_steps,
-        save=save,
-        save_every=save_every,
-        compensated=compensated,
-        renormalize_every=renormalize_every,
-    )
+    run = _LongRun(method, num_steps, save, save_every, compensated, renormalize_every)
+    simulate = _deformable_run_compiled if _reusable(positions) else _deformable_run
+    return simulate(masses, positions, q0, momentum_world, dt, t0, run)
 
 
-def _deformable_run(
-    masses,
-    positions,
-    q0,
-    momentum_world,
-    dt,
-    t0,
-    *,
-    method,
-    num_steps,
-    save,
-    save_every,
-    compensated,
-    renormalize_every,
-):
+def _deformable_run(masses, positions, q0, momentum_world, dt, t0, run: _LongRun):
     dtype = q0.dtype
 
     def body_positions(t):
@@ -863,27 +815,14 @@ def _deformable_run(
     field = _deformable_field(masses, body_positions)
 
     carry0 = (q0, rotate(momentum_world, conjugate(q0)))
-    final, qs = _long_run_scan(
-        method,
-        field,
-        t0,
-        dt,
-        dtype,
-        carry0,
-        num_steps,
-        compensated,
-        renormalize_every,
-        save=save,
-        save_every=save_every,
-        output=lambda carry: carry[0],
-    )
+    final, qs = _long_run_scan(run, field, t0, dt, dtype, carry0, output=lambda carry: carry[0])
 
     def world_positions(t, q):
         return rotate(_centred(masses, body_positions(t)), q)
 
-    if save == "final":
-        return final[0], world_positions(_times(t0, dt, num_steps, dtype), final[0])
-    times = _times(t0, dt, save_every * jnp.arange(qs.shape[0]), dtype)
+    if run.save == "final":
+        return final[0], world_positions(_times(t0, dt, run.num_steps, dtype), final[0])
+    times = _times(t0, dt, run.save_every * jnp.arange(qs.shape[0]), dtype)
     return qs, jax.vmap(world_positions)(times, qs)
 
 
