@@ -1181,8 +1181,9 @@ class _CyclingShape(eqx.Module):
 def test_repeated_simulations_compile_once():
     """Without a torque, or with `equinox.Module` callables, new values of the arrays (q0, ω0,
     inertia, Δt, t0, masses, angular momentum, the Modules' arrays) reuse the compiled run; a call
-    outside `jit` once traced and compiled the whole run again every time (0.4-2 s a call). The reused runs are checked against a closed form: a
-    symmetric top (I₁ = I₂) precesses about its axis at ω₃ (I₃ − I₁)/I₁."""
+    outside `jit` once traced and compiled the whole run again every time (0.4-2 s a call). The
+    reused runs are checked against closed forms: a symmetric top (I₁ = I₂) precesses about its
+    axis at ω₃ (I₃ − I₁)/I₁, and a damping torque's work."""
     q0 = jnp.array([1.0, 0.0, 0.0, 0.0])
 
     def top(omega3, inertia3, dt, t0):
