@@ -45,6 +45,7 @@ from ._numerics import (
     check_trailing,
     cross,
     is_tracer,
+    reusable_callable,
     sum_squares,
 )
 from ._rotation import from_matrix, rotate, rotate_unchecked
@@ -532,7 +533,8 @@ def simulate_rigid_body(
     inside the Module included, reuse it (a repeated call outside `jit` takes milliseconds instead
     of the 0.4–0.5 s of tracing and compiling). Any other callable (a function, a bound method, a
     `functools.partial`) is traced and compiled again at each call, since it may read state that
-    changes between calls.
+    changes between calls (`integrate` and `simulate_ensemble` instead key such a callable by its
+    identity, as `jax.jit` does).
 
     **Reference:** L. D. Landau & E. M. Lifshitz, *Mechanics*, §§35–37; E. Celledoni, A. Marthinsen &
     B. Owren, *Commutator-free Lie group methods*, FGCS 19 (2003).
@@ -558,29 +560,8 @@ def simulate_rigid_body(
 
     compensated, renormalize_every = long_run_options(method, dtype, compensated, renormalize_every)
     run = _LongRun(method, num_steps, save, save_every, compensated, renormalize_every)
-    simulate = _rigid_body_run_compiled if _reusable(torque) else _rigid_body_run
+    simulate = _rigid_body_run_compiled if reusable_callable(torque) else _rigid_body_run
     return simulate(q0, omega0, inertia, dt, t0, torque, frame, run)
-
-
-def _reusable(function) -> bool:
-    """Whether a simulation with this callable (a torque, a shape; or None) may be compiled once and
-    reused: None, or an `equinox.Module` whose non-array fields hash and that holds no NumPy array.
-    A Module is immutable and its arrays are traced, so new values reuse the program. A plain
-    function, bound method or `functools.partial` may read state that changes between calls (a
-    global gain, an attribute set to a tracer of an outer `jax.grad`), and JAX's cache, keyed by its
-    identity, would replay the first call's values: such callables run uncompiled, traced again at
-    each call."""
-    if function is None:
-        return True
-    if not isinstance(function, eqx.Module):
-        return False
-    if any(isinstance(leaf, np.ndarray) for leaf in jax.tree_util.tree_leaves(function)):
-        return False  # (NumPy fields would be traced: a Module may call NumPy on them)
-    try:
-        hash(eqx.filter(function, eqx.is_array, inverse=True))
-    except TypeError:
-        return False
-    return True
 
 
 def _rigid_body_run(q0, omega0, inertia, dt, t0, torque, frame: str, run: _LongRun):
@@ -802,7 +783,7 @@ def simulate_deformable_body(
                 f"`angular_momentum` must have shape (3,); got shape {tuple(momentum_world.shape)}."
             )
     run = _LongRun(method, num_steps, save, save_every, compensated, renormalize_every)
-    simulate = _deformable_run_compiled if _reusable(positions) else _deformable_run
+    simulate = _deformable_run_compiled if reusable_callable(positions) else _deformable_run
     return simulate(masses, positions, q0, momentum_world, dt, t0, run)
 
 
@@ -826,4 +807,4 @@ def _deformable_run(masses, positions, q0, momentum_world, dt, t0, run: _LongRun
     return qs, jax.vmap(world_positions)(times, qs)
 
 
-_deformable_run_compiled = eqx.filter_jit(_deformable_run)  # (a `_reusable` `positions`)
+_deformable_run_compiled = eqx.filter_jit(_deformable_run)  # (a `reusable_callable` `positions`)

@@ -58,6 +58,7 @@ from ._numerics import (
     check_frame,
     check_trailing,
     is_tracer,
+    reusable_callable,
     safe_norm,
 )
 from ._rotation import from_rotvec, rotate_unchecked
@@ -353,22 +354,30 @@ def _dynamic_step_fn(config, torque, dt, t0, q_start, offset):
     return step_fn
 
 
-@partial(jax.jit, static_argnames=("n_blocks", "block", "tail", "config"))
-def _run_chunk(state, stats, q_start, dt, t0, start, params, *, n_blocks, block, tail, config):
+_CHUNK_STATIC = ("n_blocks", "block", "tail", "config")
+
+
+def _run_chunk_steps(
+    state, stats, q_start, dt, t0, start, params, *, n_blocks, block, tail, config, callables=None
+):
     """Steps `start … start + n_blocks·block + tail` of the ensemble; saves the state after each block.
 
     Step k is at time `t0 + k·dt` with the integer global step index k, and everything a step needs is
     in the carry, so the result does not depend on how the run is cut into chunks. `params` holds the
     arrays of the callables ω and torque (dynamic: new values do not recompile), `config` the rest of
-    them (`eqx.partition`).
+    them (`eqx.partition`); or `callables` holds both whole (ω, torque), closed over by a program
+    compiled for one call (callables that are not `reusable_callable`).
     """
     config = dict(config)
     dynamic = config["dynamic"]
     sharding = config["sharding"]
-    omega_fn, torque = (
-        None if static is None else eqx.combine(arrays, static)
-        for arrays, static in zip(params, (config["omega_fn"], config["torque"]), strict=True)
-    )
+    if callables is not None:
+        omega_fn, torque = callables
+    else:
+        omega_fn, torque = (
+            None if static is None else eqx.combine(arrays, static)
+            for arrays, static in zip(params, (config["omega_fn"], config["torque"]), strict=True)
+        )
 
     def constrain(tree):
         return jax.tree_util.tree_map(lambda x: jax.lax.with_sharding_constraint(x, sharding), tree)
@@ -405,6 +414,9 @@ def _run_chunk(state, stats, q_start, dt, t0, start, params, *, n_blocks, block,
     if tail:
         state, stats = advance(state, stats, start + n_blocks * block, tail)
     return state, stats, saved
+
+
+_run_chunk = jax.jit(_run_chunk_steps, static_argnames=_CHUNK_STATIC)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -928,20 +940,13 @@ def _check_omega_fn(omega_fn: Callable, method: str, t0: Array, dt: Array, q: Ar
     _check_magnus_omega(omega, method, t0, q)
 
 
-def _split_callable(fn: Callable | None, name: str, sharding: NamedSharding) -> tuple[Any, Any]:
-    """`eqx.partition(fn, eqx.is_array)`, the arrays placed with `sharding` unless already laid out
-    on its mesh: the arrays go to the compiled chunk as arguments, the rest as a static argument,
-    which must be hashable (a `ValueError` naming `name` otherwise)."""
+def _split_callable(fn: Callable | None, sharding: NamedSharding) -> tuple[Any, Any]:
+    """`eqx.partition(fn, eqx.is_array)` of a `reusable_callable` (its static part hashes), the arrays
+    placed with `sharding` unless already laid out on its mesh: the arrays go to the compiled chunk as
+    arguments, the rest as a static argument."""
     if fn is None:
         return None, None
     arrays, static = eqx.partition(fn, eqx.is_array)
-    try:
-        hash(static)
-    except TypeError as e:
-        raise ValueError(
-            f"`{name}` must be hashable apart from its arrays (a function, or an equinox.Module "
-            f"whose other fields are hashable); {e}."
-        ) from None
 
     def place(x):
         current = getattr(x, "sharding", None)
@@ -1023,8 +1028,11 @@ def simulate_ensemble(
       called on all bodies at once, flattened and padded, `q` of shape `(padded bodies, 4)`: it must
       act element-wise (return `(3,)` or `(padded bodies, 3)`); or `jaxquat.sampled(omegas, dt)`
       with samples `(T, ..., 3)` whose leading axes broadcast with `q0` (laid out over the bodies).
-      The arrays of a callable ω or torque are arguments of the compiled chunks, replicated over the
-      devices: new values (e.g. trained parameters) do not recompile.
+      The arrays of an `equinox.Module` ω or torque are arguments of the compiled chunks,
+      replicated over the devices: new values (e.g. trained parameters) do not recompile. Other
+      callables are cached as by `integrate` (by identity, assumed pure); one that does not hash,
+      or a Module with NumPy fields, has its chunks compiled again at each call (once for all its
+      chunks).
     - `dt`: the time step (a scalar). `num_steps`: the number of steps, 0 … 2³¹ − 1.
     - `inertia`: `None` (kinematic), or principal moments `(3,)` / matrices `(3, 3)`, shared or per
       body `(..., 3)` / `(..., 3, 3)`. A trailing `(3, 3)` is always a matrix: for exactly three
@@ -1211,11 +1219,25 @@ def simulate_ensemble(
         chunk_size = save_every * max(1, -(-chunk_size // save_every))
     block = save_every or chunk_size
 
-    # The callables' arrays are dynamic arguments of the compiled chunk, replicated over the devices
-    # (new values, e.g. trained parameters, do not recompile); the rest of them is static.
-    omega_params, omega_static = _split_callable(omega_fn, "omega", replicated)
-    torque_params, torque_static = _split_callable(torque, "torque", replicated)
-    params = (omega_params, torque_params)
+    if reusable_callable(omega_fn, by_identity=True) and reusable_callable(
+        torque, by_identity=True
+    ):
+        # The callables' arrays are dynamic arguments of the compiled chunk, replicated over the
+        # devices (new values, e.g. trained parameters, do not recompile); the rest of them is static.
+        omega_params, omega_static = _split_callable(omega_fn, replicated)
+        torque_params, torque_static = _split_callable(torque, replicated)
+        params = (omega_params, torque_params)
+        run_chunk = _run_chunk
+    else:
+        # A callable that does not hash, or a Module with NumPy fields: the chunks are compiled for
+        # this call only, with both callables closed over (NumPy fields stay NumPy).
+        callables = (omega_fn, torque)
+        omega_static = torque_static = None
+        params = (None, None)
+        run_chunk = jax.jit(
+            lambda *args, **options: _run_chunk_steps(*args, **options, callables=callables),
+            static_argnames=_CHUNK_STATIC,
+        )
     config = dict(
         dynamic=dynamic,
         frame=frame,
@@ -1305,7 +1327,7 @@ def simulate_ensemble(
         for start in starts:
             length = min(chunk_size, num_steps - start)
             n_blocks, tail = divmod(length, block)
-            state, stats, saved = _run_chunk(
+            state, stats, saved = run_chunk(
                 state,
                 stats,
                 q_start,

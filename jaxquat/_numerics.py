@@ -15,6 +15,7 @@ import inspect
 import operator
 from collections.abc import Callable, Sequence
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -161,6 +162,31 @@ def check_callable(fn, name: str, call: str, num_args: int) -> None:
             f"`{name}` must be callable as {call} ({num_args} positional argument"
             f"{'s' if num_args != 1 else ''}); its signature is {signature}."
         ) from None
+
+
+def reusable_callable(function, *, by_identity: bool = False) -> bool:
+    """Whether a compiled run that calls `function` (an ω, a torque, a shape; or None) may be cached
+    and reused at later calls.
+
+    Always for None, and for an `equinox.Module` whose non-array fields hash and that holds no NumPy
+    array: a Module is immutable and its arrays are traced, so new values reuse the program. Never
+    for a callable that does not hash (a JIT cache cannot key on it) or a Module with NumPy fields
+    (they would be traced, and the Module may call NumPy on them). Any other callable (a function,
+    a bound method, a `functools.partial`) only `by_identity`: `jax.jit`'s rule, under which the
+    first call's program is replayed, so state the callable reads (a global gain, an attribute set
+    to a tracer of an outer `jax.grad`) is read once; without `by_identity` such a run is traced
+    again at each call."""
+    if function is None:
+        return True
+    if any(isinstance(leaf, np.ndarray) for leaf in jax.tree_util.tree_leaves(function)):
+        return False  # (NumPy fields would be traced: a Module may call NumPy on them)
+    if not (by_identity or isinstance(function, eqx.Module)):
+        return False
+    try:
+        hash(eqx.filter(function, eqx.is_array, inverse=True))
+    except TypeError:
+        return False
+    return True
 
 
 def check_frame(frame) -> str:

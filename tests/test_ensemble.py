@@ -271,6 +271,73 @@ def test_callables_carrying_arrays_match_integrate_and_do_not_recompile(getkey):
         np.testing.assert_allclose(result.final_omega, w_ref, atol=1e-13, err_msg=frame)
 
 
+class _DataclassSpin:  # compares by value but does not hash (as a dataclass with eq=True)
+    __hash__ = None
+
+    def __init__(self, rate):
+        self.rate = rate
+
+    def __eq__(self, other):
+        return isinstance(other, _DataclassSpin) and self.rate == other.rate
+
+    def __call__(self, t, q):
+        return jnp.broadcast_to(jnp.array([0.0, self.rate, 0.0]), q.shape[:-1] + (3,))
+
+
+class _NumpyAxisSpin(eqx.Module):  # a NumPy field the call uses with NumPy (not traceable)
+    axis: np.ndarray
+
+    def __call__(self, t, q):
+        return jnp.broadcast_to(jnp.asarray(np.asarray(self.axis) * 1.0), q.shape[:-1] + (3,))
+
+
+class _DataclassDrag:  # the torque −c ω, unhashable too
+    __hash__ = None
+
+    def __init__(self, c):
+        self.c = c
+
+    def __eq__(self, other):
+        return isinstance(other, _DataclassDrag) and self.c == other.c
+
+    def __call__(self, t, q, omega):
+        return -self.c * omega
+
+
+def test_callables_a_cache_cannot_hold_are_compiled_at_each_call():
+    """A callable that does not hash once failed with "must be hashable apart from its arrays", and
+    a Module calling NumPy on its NumPy field with a tracer conversion error: both now run, their
+    chunks compiled for each call, with each call's values. Closed forms of a constant ω about y and
+    z for 1 s over two chunks, and of a sphere under the torque −c ω, ω(t) = ω₀ exp(−c t / I)."""
+    q0 = jaxquat.identity((2,))
+
+    def final(omega, **kw):
+        return simulate_ensemble(q0, omega, 0.01, 100, chunk_size=60, **kw).final
+
+    def turn(axis, angle):
+        return np.broadcast_to(
+            np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * np.eye(3)[axis]]), (2, 4)
+        )
+
+    for rate in (0.4, -1.2):
+        np.testing.assert_allclose(final(_DataclassSpin(rate)), turn(1, rate), atol=1e-13)
+    for angle in (0.8, -2.5):
+        spin = _NumpyAxisSpin(np.array([0.0, 0.0, angle]))
+        np.testing.assert_allclose(final(spin), turn(2, angle), atol=1e-13)
+    omega0 = jnp.array([[0.2, -0.4, 1.1]])
+    for c in (0.5, 2.0):
+        result = simulate_ensemble(
+            q0[:1],
+            omega0,
+            0.01,
+            100,
+            inertia=jnp.full(3, 2.0),
+            torque=_DataclassDrag(c),
+            chunk_size=60,
+        )
+        np.testing.assert_allclose(result.final_omega, omega0 * np.exp(-c / 2), rtol=1e-9)
+
+
 def test_sampled_grid_within_round_off_is_the_grid_as_in_integrate(getkey):
     """A float32 Δt of 0.7 (0.699999988) against samples every float64 0.7: as `integrate`, the
     ensemble holds sample k on step k (by time alone, its Euler steps started 2e-8·k samples short of
@@ -603,7 +670,17 @@ _SHARDED_CALLABLES = textwrap.dedent(
     samples = jax.random.normal(jax.random.key(1), (12, 2, 3, 3))
     omega0 = jax.random.normal(jax.random.key(2), (2, 3, 3))
     inertia = jnp.array([1.0, 2.0, 3.5])
+    class NumpyAxis(eqx.Module):
+        axis: np.ndarray
+        def __call__(self, t, q):  # NumPy on the field: a constant of the program, not traced
+            return jnp.broadcast_to(jnp.sin(t) * np.asarray(self.axis), q.shape[:-1] + (3,))
+    axis = jax.device_put(jnp.array([0.3, -0.2, 1.0]), jax.devices()[0])  # committed to one device
+    def closure(t, q):
+        return jnp.broadcast_to(jnp.sin(t) * axis, q.shape[:-1] + (3,))
     cases = dict(
+        closure=(closure, dict(method="midpoint")),
+        numpy_module=(NumpyAxis(np.array([0.3, -0.2, 1.0])), dict(method="midpoint")),
+        plain_torque=(omega0, dict(inertia=inertia, torque=lambda t, q, w: -0.4 * w)),
         sampled=(jaxquat.sampled(samples, 0.1), dict(method="cf4")),
         module=(Spin(jnp.array([0.3, -0.2, 1.0])), dict(method="midpoint")),
         torque=(omega0, dict(inertia=inertia, torque=Drag(jnp.asarray(0.4)))),
