@@ -533,8 +533,8 @@ def simulate_rigid_body(
     inside the Module included, reuse it (a repeated call outside `jit` takes milliseconds instead
     of the 0.4–0.5 s of tracing and compiling). Any other callable (a function, a bound method, a
     `functools.partial`) is traced and compiled again at each call, since it may read state that
-    changes between calls (`integrate` and `simulate_ensemble` instead key such a callable by its
-    identity, as `jax.jit` does).
+    changes between calls (`integrate` instead keys such a callable by its identity, as `jax.jit`
+    does). A Module holding NumPy values (arrays or scalars) is traced again too.
 
     **Reference:** L. D. Landau & E. M. Lifshitz, *Mechanics*, §§35–37; E. Celledoni, A. Marthinsen &
     B. Owren, *Commutator-free Lie group methods*, FGCS 19 (2003).

@@ -60,6 +60,7 @@ from ._numerics import (
     is_tracer,
     reusable_callable,
     safe_norm,
+    static_key,
 )
 from ._rotation import from_rotvec, rotate_unchecked
 
@@ -375,7 +376,7 @@ def _run_chunk_steps(
         omega_fn, torque = callables
     else:
         omega_fn, torque = (
-            None if static is None else eqx.combine(arrays, static)
+            _join_callable(arrays, static)
             for arrays, static in zip(params, (config["omega_fn"], config["torque"]), strict=True)
         )
 
@@ -941,12 +942,11 @@ def _check_omega_fn(omega_fn: Callable, method: str, t0: Array, dt: Array, q: Ar
 
 
 def _split_callable(fn: Callable | None, sharding: NamedSharding) -> tuple[Any, Any]:
-    """`eqx.partition(fn, eqx.is_array)` of a `reusable_callable` (its static part hashes), the arrays
-    placed with `sharding` unless already laid out on its mesh: the arrays go to the compiled chunk as
-    arguments, the rest as a static argument."""
+    """A `reusable_callable` split into its arrays, placed with `sharding` unless already laid out on
+    its mesh (a list with None for the other leaves: dynamic arguments of the compiled chunk), and
+    its hashable `static_key` (a static argument); `_join_callable` puts them back together."""
     if fn is None:
         return None, None
-    arrays, static = eqx.partition(fn, eqx.is_array)
 
     def place(x):
         current = getattr(x, "sharding", None)
@@ -954,7 +954,17 @@ def _split_callable(fn: Callable | None, sharding: NamedSharding) -> tuple[Any, 
             return x
         return jax.device_put(x, sharding)
 
-    return jax.tree_util.tree_map(place, arrays), static
+    leaves = jax.tree_util.tree_leaves(fn)
+    return [place(x) if eqx.is_array(x) else None for x in leaves], static_key(fn)
+
+
+def _join_callable(arrays, static):
+    """The callable `_split_callable` split."""
+    if static is None:
+        return None
+    structure, rest = static
+    leaves = [x if x is not None else r for x, r in zip(arrays, rest, strict=True)]
+    return jax.tree_util.tree_unflatten(structure, leaves)
 
 
 def _check_path(path) -> str:
@@ -1029,10 +1039,10 @@ def simulate_ensemble(
       act element-wise (return `(3,)` or `(padded bodies, 3)`); or `jaxquat.sampled(omegas, dt)`
       with samples `(T, ..., 3)` whose leading axes broadcast with `q0` (laid out over the bodies).
       The arrays of an `equinox.Module` ω or torque are arguments of the compiled chunks,
-      replicated over the devices: new values (e.g. trained parameters) do not recompile. Other
-      callables are cached as by `integrate` (by identity, assumed pure); one that does not hash,
-      or a Module with NumPy fields, has its chunks compiled again at each call (once for all its
-      chunks).
+      replicated over the devices: new values (e.g. trained parameters) do not recompile. Any other
+      callable (a function, a bound method, a `functools.partial`, or a Module holding NumPy values)
+      may read state that changes between calls: the chunks are then compiled at each call (once
+      per chunk length), as in `simulate_rigid_body`.
     - `dt`: the time step (a scalar). `num_steps`: the number of steps, 0 … 2³¹ − 1.
     - `inertia`: `None` (kinematic), or principal moments `(3,)` / matrices `(3, 3)`, shared or per
       body `(..., 3)` / `(..., 3, 3)`. A trailing `(3, 3)` is always a matrix: for exactly three
@@ -1142,7 +1152,7 @@ def simulate_ensemble(
     if dt_array.ndim != 0:
         raise ValueError(f"`dt` must be a scalar; got shape {tuple(dt_array.shape)}.")
     _check_real_scalar(t0, "t0")
-    if not isinstance(dt, jax.core.Tracer) and not np.isfinite(np.asarray(dt_array)):
+    if not is_tracer(dt_array) and not np.isfinite(np.asarray(dt_array)):
         raise ValueError(f"`dt` must be finite; got {float(dt_array)!r}.")
     if method is None:
         method = "cf4" if dynamic else "euler"
@@ -1219,9 +1229,7 @@ def simulate_ensemble(
         chunk_size = save_every * max(1, -(-chunk_size // save_every))
     block = save_every or chunk_size
 
-    if reusable_callable(omega_fn, by_identity=True) and reusable_callable(
-        torque, by_identity=True
-    ):
+    if reusable_callable(omega_fn) and reusable_callable(torque):
         # The callables' arrays are dynamic arguments of the compiled chunk, replicated over the
         # devices (new values, e.g. trained parameters, do not recompile); the rest of them is static.
         omega_params, omega_static = _split_callable(omega_fn, replicated)
@@ -1229,8 +1237,9 @@ def simulate_ensemble(
         params = (omega_params, torque_params)
         run_chunk = _run_chunk
     else:
-        # A callable that does not hash, or a Module with NumPy fields: the chunks are compiled for
-        # this call only, with both callables closed over (NumPy fields stay NumPy).
+        # A function, bound method or partial may read state that changes between calls (and the
+        # final ω is evaluated after the run): the chunks are compiled for this call only, with both
+        # callables closed over (they need not hash; NumPy values stay NumPy).
         callables = (omega_fn, torque)
         omega_static = torque_static = None
         params = (None, None)

@@ -881,8 +881,8 @@ def integrate(
     function, bound method or `functools.partial` is keyed by its identity and assumed pure, as
     `jax.jit` assumes: state it reads (a global, an attribute) is read when it is first traced, so
     pass changing values as a Module's arrays, or as a new callable. A callable that does not hash
-    (a dataclass with `eq=True`) or a Module with NumPy fields (used as NumPy constants) is compiled
-    again at each call.
+    (a dataclass with `eq=True`) or a Module holding NumPy arrays or scalars (used as NumPy constants)
+    is compiled again at each call.
 
     **Speed.** `"euler"` with a constant or sampled ω takes a restructured loop (structure-of-arrays
     carry, step rotation hoisted, series exponential for small steps, trajectories formed blockwise);

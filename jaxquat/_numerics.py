@@ -166,27 +166,37 @@ def check_callable(fn, name: str, call: str, num_args: int) -> None:
 
 def reusable_callable(function, *, by_identity: bool = False) -> bool:
     """Whether a compiled run that calls `function` (an ω, a torque, a shape; or None) may be cached
-    and reused at later calls.
+    and reused at later calls, keyed as `equinox.filter_jit` keys it: by its PyTree structure and
+    its leaves that are not JAX arrays (`static_key`).
 
-    Always for None, and for an `equinox.Module` whose non-array fields hash and that holds no NumPy
-    array: a Module is immutable and its arrays are traced, so new values reuse the program. Never
-    for a callable that does not hash (a JIT cache cannot key on it) or a Module with NumPy fields
-    (they would be traced, and the Module may call NumPy on them). Any other callable (a function,
-    a bound method, a `functools.partial`) only `by_identity`: `jax.jit`'s rule, under which the
-    first call's program is replayed, so state the callable reads (a global gain, an attribute set
-    to a tracer of an outer `jax.grad`) is read once; without `by_identity` such a run is traced
-    again at each call."""
+    Always for None, and for an `equinox.Module` whose key hashes and that holds no NumPy array or
+    scalar: a Module is immutable and its JAX arrays are traced, so new values reuse the program.
+    Never for a callable whose key does not hash (a JIT cache cannot hold it) or that holds NumPy
+    values (they would be traced, and the callable may call NumPy on them). Any other callable (a
+    function, a bound method, a `functools.partial`) only `by_identity`: `jax.jit`'s rule, under
+    which the first call's program is replayed, so state the callable reads (a global gain, an
+    attribute set to a tracer of an outer `jax.grad`) is read once; without `by_identity` such a run
+    is traced again at each call."""
     if function is None:
         return True
-    if any(isinstance(leaf, np.ndarray) for leaf in jax.tree_util.tree_leaves(function)):
-        return False  # (NumPy fields would be traced: a Module may call NumPy on them)
+    leaves = jax.tree_util.tree_leaves(function)
+    if any(isinstance(leaf, (np.ndarray, np.generic)) for leaf in leaves):
+        return False  # (NumPy values would be traced: the callable may call NumPy on them)
     if not (by_identity or isinstance(function, eqx.Module)):
         return False
     try:
-        hash(eqx.filter(function, eqx.is_array, inverse=True))
+        hash(static_key(function))
     except TypeError:
         return False
     return True
+
+
+def static_key(tree) -> tuple:
+    """The PyTree structure of `tree` and its leaves that are not arrays (None in the arrays' places):
+    what a JIT cache keys a callable on when its arrays are traced (`equinox.filter_jit`'s rule).
+    Hashable where those leaves are, whatever containers (lists, dicts) hold them."""
+    leaves, structure = jax.tree_util.tree_flatten(tree)
+    return structure, tuple(None if eqx.is_array(leaf) else leaf for leaf in leaves)
 
 
 def check_frame(frame) -> str:

@@ -271,6 +271,13 @@ def test_callables_carrying_arrays_match_integrate_and_do_not_recompile(getkey):
         np.testing.assert_allclose(result.final_omega, w_ref, atol=1e-13, err_msg=frame)
 
 
+_GAIN = {"value": 1.0}
+
+
+def _global_spin(t, q):  # reads a module-level gain when traced
+    return jnp.broadcast_to(jnp.array([_GAIN["value"], 0.0, 0.0]), q.shape[:-1] + (3,))
+
+
 class _DataclassSpin:  # compares by value but does not hash (as a dataclass with eq=True)
     __hash__ = None
 
@@ -304,21 +311,31 @@ class _DataclassDrag:  # the torque −c ω, unhashable too
         return -self.c * omega
 
 
-def test_callables_a_cache_cannot_hold_are_compiled_at_each_call():
-    """A callable that does not hash once failed with "must be hashable apart from its arrays", and
-    a Module calling NumPy on its NumPy field with a tracer conversion error: both now run, their
-    chunks compiled for each call, with each call's values. Closed forms of a constant ω about y and
-    z for 1 s over two chunks, and of a sphere under the torque −c ω, ω(t) = ω₀ exp(−c t / I)."""
+def test_callables_other_than_modules_are_compiled_at_each_call():
+    """A function that reads a global, a callable that does not hash (it once failed with "must be
+    hashable apart from its arrays") and a Module calling NumPy on its NumPy field (once a tracer
+    conversion error) all run, their chunks compiled for each call, with each call's values: the
+    trajectory and the final ω agree (a cached run once replayed the first call's gain while the
+    final ω, evaluated after the run, read the new one). Closed forms of a constant ω about x, y, z
+    for 1 s over two chunks, and of a sphere under the torque −c ω, ω(t) = ω₀ exp(−c t / I)."""
     q0 = jaxquat.identity((2,))
 
+    def run(omega, **kw):
+        return simulate_ensemble(q0, omega, 0.01, 100, chunk_size=60, **kw)
+
     def final(omega, **kw):
-        return simulate_ensemble(q0, omega, 0.01, 100, chunk_size=60, **kw).final
+        return run(omega, **kw).final
 
     def turn(axis, angle):
         return np.broadcast_to(
             np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * np.eye(3)[axis]]), (2, 4)
         )
 
+    for gain in (1.0, 2.0):
+        _GAIN["value"] = gain
+        result = run(_global_spin)
+        np.testing.assert_allclose(result.final, turn(0, gain), atol=1e-13)
+        np.testing.assert_array_equal(result.final_omega, np.broadcast_to([gain, 0.0, 0.0], (2, 3)))
     for rate in (0.4, -1.2):
         np.testing.assert_allclose(final(_DataclassSpin(rate)), turn(1, rate), atol=1e-13)
     for angle in (0.8, -2.5):
@@ -336,6 +353,48 @@ def test_callables_a_cache_cannot_hold_are_compiled_at_each_call():
             chunk_size=60,
         )
         np.testing.assert_allclose(result.final_omega, omega0 * np.exp(-c / 2), rtol=1e-9)
+
+
+class _ListSpin(eqx.Module):  # parameters kept in a list: ω(t) = w₀ + sin(t) w₁
+    ws: list
+
+    def __call__(self, t, q):
+        return jnp.broadcast_to(self.ws[0] + jnp.sin(t) * self.ws[1], q.shape[:-1] + (3,))
+
+
+class _ScalarSpin(eqx.Module):  # a NumPy scalar field (indexing a NumPy array gives one)
+    rate: float
+
+    def __call__(self, t, q):
+        return jnp.broadcast_to(jnp.array([0.0, 0.0, float(self.rate)]), q.shape[:-1] + (3,))
+
+
+def test_modules_with_containers_and_numpy_scalars_and_runs_under_jit():
+    """A Module whose arrays sit in a list reuses the compiled chunk with new values; one with a NumPy
+    scalar field that it converts with `float` runs (traced, it failed); and the whole ensemble runs
+    inside `jax.jit` (its dt check once called NumPy on a tracer). Closed forms about the z axis:
+    ω = a + b sin t turns by a T + b (1 − cos T) (cf4's error at Δt = 0.01 is ~1e-10)."""
+    q0 = jaxquat.identity((2,))
+    z = jnp.array([0.0, 0.0, 1.0])
+
+    def about_z(angle):
+        return np.broadcast_to([np.cos(angle / 2), 0.0, 0.0, np.sin(angle / 2)], (2, 4))
+
+    def listed(a, b):
+        spin = _ListSpin([a * z, b * z])
+        return simulate_ensemble(q0, spin, 0.01, 100, method="cf4", chunk_size=60).final
+
+    np.testing.assert_allclose(listed(0.5, 1.0), about_z(0.5 + (1 - np.cos(1.0))), atol=1e-9)
+    compiled = _run_chunk._cache_size()
+    np.testing.assert_allclose(listed(-1.0, 2.0), about_z(-1.0 + 2 * (1 - np.cos(1.0))), atol=1e-9)
+    assert _run_chunk._cache_size() == compiled
+    for rate in np.array([0.3, -1.1]):  # np.float64 scalars
+        result = simulate_ensemble(q0, _ScalarSpin(rate), 0.01, 100, chunk_size=60)
+        np.testing.assert_allclose(result.final, about_z(rate), atol=1e-13)
+    jitted = jax.jit(lambda w: simulate_ensemble(q0, w, 0.01, 100, statistics=True))
+    result = jitted(jnp.broadcast_to(0.7 * z, (2, 3)))
+    np.testing.assert_allclose(result.final, about_z(0.7), atol=1e-13)
+    np.testing.assert_allclose(result.total_angle, np.full(2, 0.7), atol=1e-12)
 
 
 def test_sampled_grid_within_round_off_is_the_grid_as_in_integrate(getkey):

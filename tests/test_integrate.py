@@ -1156,6 +1156,20 @@ class _NumpyAxisSpin(eqx.Module):  # a NumPy field the call uses with NumPy (not
         return jnp.asarray(np.asarray(self.axis) * np.float64(1.0))
 
 
+class _ScalarSpin(eqx.Module):  # a NumPy scalar field (indexing a NumPy array gives one)
+    rate: float
+
+    def __call__(self, t, q):
+        return jnp.array([0.0, 0.0, float(self.rate)])
+
+
+class _ListSpin(eqx.Module):  # parameters kept in a list: ω(t) = sin(t) (w₀ + w₁)
+    ws: list
+
+    def __call__(self, t, q):
+        return jnp.sin(t) * (self.ws[0] + self.ws[1])
+
+
 class _ArraySpin(eqx.Module):
     w: jax.Array
 
@@ -1186,6 +1200,9 @@ def test_callables_a_cache_cannot_hold_are_compiled_at_each_call(method):
         angle = axis[2]
         expected = np.array([np.cos(angle / 2), 0.0, 0.0, np.sin(angle / 2)])
         np.testing.assert_allclose(final(_NumpyAxisSpin(np.array(axis))), expected, atol=1e-13)
+    for rate in np.array([0.3, -1.1]):  # np.float64 fields, used with float() (traced, they failed)
+        expected = np.array([np.cos(rate / 2), 0.0, 0.0, np.sin(rate / 2)])
+        np.testing.assert_allclose(final(_ScalarSpin(rate)), expected, atol=1e-13)
     grad = jax.grad(lambda rate: final(_DataclassSpin(rate))[2])(0.6)  # d/da sin(a/2) = cos(a/2)/2
     np.testing.assert_allclose(grad, 0.5 * np.cos(0.3), rtol=1e-10)
 
@@ -1204,11 +1221,17 @@ def test_module_and_sampled_omega_compile_once():
         omega = jq.sampled(jnp.stack([samples, 0 * samples, 0 * samples], -1), 0.01)
         return jq.integrate(q0, omega, 0.01, 200, save="final")
 
-    spin([1.0, 0.0, 0.0]), held(jnp.ones(200))  # compiled here
+    def listed(w):
+        spin = _ListSpin([jnp.asarray(w), jnp.asarray(w)])  # (its arrays in a list)
+        return jq.integrate(q0, spin, 0.01, 200, method="cf4", save="final")
+
+    spin([1.0, 0.0, 0.0]), held(jnp.ones(200)), listed([1.0, 0.0, 0.0])  # compiled here
     rates = jnp.linspace(-1.0, 2.0, 200)
     with count_lowerings() as lowered:
         turned = spin([1.5, 0.0, 0.0])
         sampled_turn = held(rates)
+        listed_turn = listed([0.25, 0.0, 0.0])
     assert lowered == [], f"{len(lowered)} programs compiled again"
     np.testing.assert_allclose(turned, _about_x(1.5 * (1 - np.cos(2.0))), atol=1e-9)
+    np.testing.assert_allclose(listed_turn, _about_x(0.5 * (1 - np.cos(2.0))), atol=1e-9)
     np.testing.assert_allclose(sampled_turn, _about_x(float(jnp.sum(rates)) * 0.01), atol=1e-13)
