@@ -507,10 +507,24 @@ def _top_eigenvector(k: Array, davenport: bool = False) -> Array:
     eigenvalues are degenerate — e.g. the eigenvalues (3, −1, −1, −1) of Davenport's matrix of an exact
     rotation. Requires the largest eigenvalue to be simple.
     """
-    if davenport:
-        power, converged = _davenport_power(k)
-        return jax.lax.cond(jnp.all(converged), lambda k: power, _eigh_top, k)
-    return _eigh_top(k)
+    return _power_or_eigh_top(k) if davenport else _eigh_top(k)
+
+
+@jax.custom_batching.custom_vmap
+def _power_or_eigh_top(k: Array) -> Array:
+    """`_davenport_power`'s vectors if all of them are proven converged, else `eigh`'s."""
+    power, converged = _davenport_power(k)
+    return jax.lax.cond(jnp.all(converged), lambda k: power, _eigh_top, k)
+
+
+@_power_or_eigh_top.def_vmap
+def _power_or_eigh_top_vmap(axis_size, in_batched, k):
+    # The function is batched over leading axes already: under `jax.vmap` it runs once on the whole
+    # batch, so one `lax.cond` picks a branch for all of it (vmap's rule for a `cond` whose predicate
+    # is batched computes both branches and selects).
+    if not in_batched[0]:
+        k = jnp.broadcast_to(k, (axis_size, *k.shape))
+    return _power_or_eigh_top(k), True
 
 
 def _eigh_top(k: Array) -> Array:

@@ -226,6 +226,7 @@ def from_matrix(m: ArrayLike) -> Array:
     the result is accurate everywhere, including half-turns, with no branch on the largest diagonal.
     When every matrix of the batch is near a rotation, the eigenvector comes from eight power steps,
     kept only if a residual and eigenvalue-gap check proves them converged; otherwise from `eigh`.
+    Under `jax.vmap` the whole mapped batch makes that choice once, as a batched call does.
     Either way the result is the same to round-off. On a 2-core CPU, 10⁵ rotations take 22 ms in
     float64, against 106 ms with `eigh` for every matrix and 28 ms for SciPy.
 

@@ -784,9 +784,41 @@ def test_from_matrix_power_steps_on_rotations_and_eigh_elsewhere(dtype):
     nearest = np.einsum("nij,nij->n", u @ vt, mixed)
     mine = np.einsum("nij,nij->n", np.asarray(jq.to_matrix(jnp.asarray(q))), mixed)
     assert np.all(mine >= nearest - 64 * eps * np.abs(nearest))
-    # Under vmap the condition becomes a per-matrix choice, with the same values.
+    # Under vmap (nested, or with the matrix unbatched) the whole batch takes one branch, as in a
+    # batched call: the program keeps its `cond` (vmap's own rule would compute both branches and
+    # select), and the values are the batched call's.
     batched = jax.vmap(jq.from_matrix)(jnp.asarray(mixed, dtype))
     np.testing.assert_allclose(batched, q.astype(dtype), atol=16 * eps)
+    nested = jax.vmap(jax.vmap(jq.from_matrix))(jnp.asarray(near["rotations"], dtype)[None])
+    np.testing.assert_allclose(
+        nested[0], jq.from_matrix(jnp.asarray(near["rotations"], dtype)), atol=16 * eps
+    )
+    scaled = jax.vmap(lambda s, m: s * jq.from_matrix(m), in_axes=(0, None))
+    np.testing.assert_allclose(
+        scaled(jnp.arange(3.0, dtype=dtype), jnp.asarray(mixed[0], dtype))[2],
+        2 * q[0],
+        atol=32 * eps,
+    )
+    program = jax.make_jaxpr(jax.vmap(jq.from_matrix))(jnp.asarray(mixed, dtype)).jaxpr
+    assert _eigh_outside_cond(program) == 0 and _eigh_outside_cond(program, inside=True) == 1
+
+
+def _eigh_outside_cond(jaxpr, inside=False) -> int:
+    """The `eigh` calls of a jaxpr and the jaxprs it calls, not counting (or, `inside`, counting only)
+    those in the branches of a `cond`."""
+    count = 0
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == "eigh":
+            count += not inside
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, tuple) else (value,):
+                sub = getattr(sub, "jaxpr", sub)
+                if hasattr(sub, "eqns"):
+                    if eqn.primitive.name == "cond":
+                        count += _eigh_outside_cond(sub, inside=False) if inside else 0
+                    else:
+                        count += _eigh_outside_cond(sub, inside)
+    return count
 
 
 def test_from_matrix_derivatives_are_those_of_eigh_on_the_power_path():
