@@ -365,9 +365,9 @@ def _run_chunk_steps(
 
     Step k is at time `t0 + k·dt` with the integer global step index k, and everything a step needs is
     in the carry, so the result does not depend on how the run is cut into chunks. `params` holds the
-    arrays of the callables ω and torque (dynamic: new values do not recompile), `config` the rest of
-    them (`eqx.partition`); or `callables` holds both whole (ω, torque), closed over by a program
-    compiled for one call (callables that are not `reusable_callable`).
+    arrays of the callables ω and torque (dynamic: new values do not recompile), `config` their
+    `static_key`s (`_split_callable`); or `callables` holds both whole (ω, torque), closed over by a
+    program compiled for one call (callables that are not `reusable_callable`).
     """
     config = dict(config)
     dynamic = config["dynamic"]
