@@ -170,8 +170,10 @@ def log(q: ArrayLike) -> Array:
 
     For a unit quaternion the result is the pure quaternion (0, r/2) with r the rotation vector
     (|r| ≤ 2π; use `to_rotvec` for the shortest, |r| ≤ π). Series-switched near v = 0 for w > 0: value
-    (ln w, 0), Jacobian of the vector part w.r.t. v there I₃/w. `log(-1)` returns (0, 0, 0, 0)
-    (the axis of a half-turn of the 4-sphere is undefined); `log(0)` is −∞ in w.
+    (ln w, 0), Jacobian of the vector part w.r.t. v there I₃/w. `exp(log(q)) = q` for every nonzero q.
+    A negative real q = (w < 0, 0, 0, 0) has no axis of its own: its logarithm takes the x axis,
+    (ln|w|, π, 0, 0), as numpy-quaternion does (the value jumps there: every (ln|w|, π·u) with |u| = 1
+    is a limit; the Jacobian of the vector part is taken as 0). `log(0)` is −∞ in w.
     """
     q = check_trailing(q, 4, "q")
     q, e = prescale(q)  # ln|q| = ln|q 2⁻ᵉ| + e ln 2; the vector part is scale-invariant
@@ -180,10 +182,18 @@ def log(q: ArrayLike) -> Array:
     s_sq = sum_squares(v)
     log_norm = 0.5 * jnp.log(s_sq + w * w) + e.astype(q.dtype) * _LN2
     xyz = atan2_over(s_sq, w)[..., None] * v
-    # For w < 0 a vector part so small beside w that |v|² underflows (|v|/|w| below ~1e-154 in
-    # float64, ~1e-19 in float32) still has a direction, and the angle atan2(|v|, w) is π: the
-    # direction is taken from v scaled on its own (atan2_over(0, w) alone would give π·v, not π·v̂).
-    lost = (w < 0) & (s_sq <= 0) & jnp.any(v != 0, axis=-1)
-    direction = unit_vector(jnp.where(lost[..., None], v, jnp.ones_like(v)))
-    xyz = jnp.where(lost[..., None], jnp.pi * direction, xyz)
+    # For w < 0 and a tiny vector part the angle atan2(|v|, w) is π to round-off, and the result
+    # π·v/|v| needs |v| exactly; |v|² cannot give it there. It underflows to 0 (|v|/|w| below ~1e-154
+    # in float64, ~1e-19 in float32), or — XLA:CPU flushes subnormal squares to zero — loses only the
+    # smaller components: (−1, 3e-154, 1e-154, 0) gave a vector part of length 3.31 instead of π.
+    # Below |v|² = tiny/ε, where a flushed square could still count, |v| and v/|v| are taken from v
+    # scaled on its own (`scaled_norm`, `unit_vector`), and v = 0 takes the x axis.
+    finfo = jnp.finfo(q.dtype)
+    small = (w < 0) & (s_sq < finfo.tiny / finfo.eps)
+    has_axis = jnp.any(v != 0, axis=-1, keepdims=True)
+    x_axis = jnp.zeros_like(v).at[..., 0].set(1)
+    masked = jnp.where(small[..., None] & has_axis, v, x_axis)
+    direction = jnp.where(has_axis, unit_vector(masked), x_axis)
+    angle = jnp.arctan2(scaled_norm(masked) * has_axis[..., 0], w)
+    xyz = jnp.where(small[..., None], angle[..., None] * direction, xyz)
     return jnp.concatenate([log_norm[..., None], xyz], axis=-1)

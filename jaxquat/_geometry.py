@@ -60,6 +60,7 @@ def angle_between(p: ArrayLike, q: ArrayLike) -> Array:
     p, q = broadcast_batch((p, 1, "p"), (q, 1, "q"))
     # Unit first: with |p| ≫ |q| the difference below would swamp q in rounding. (Through
     # `unit_vector`: |p|² of a float32 p of length 1e20 overflows, and gave θ = 0 for any q.)
+    p_given, q_given = p, q
     p = unit_vector(p)
     q = unit_vector(q)
     w = jnp.sum(p * q, axis=-1)  # w(p* q) = ⟨p, q⟩
@@ -68,6 +69,10 @@ def angle_between(p: ArrayLike, q: ArrayLike) -> Array:
     # compiler contracts it into fused multiply-adds), and free of cancellation for tiny angles.
     sign = jnp.where(w < 0, -1.0, 1.0).astype(q.dtype)[..., None]
     d = sign * q - p
+    # d is exactly 0 for q = ±p only if XLA normalised p and q with the same instructions; for some
+    # shapes it fuses the two differently (one float32 quaternion gave θ(q, q) = 5e-8 rad, a batch of
+    # two exactly 0). Inputs equal up to sign are therefore matched as given.
+    d = jnp.where(jnp.all(sign * q_given == p_given, axis=-1, keepdims=True), 0.0, d)
     vector = p[..., :1] * d[..., 1:] - d[..., :1] * p[..., 1:] - cross(p[..., 1:], d[..., 1:])
     # |w| as w·sign(w): the same value, and the derivative sign(w), 0 at w = 0 (θ = π), where
     # `jnp.abs` would take the one-sided 1.

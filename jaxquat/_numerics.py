@@ -399,7 +399,7 @@ def atan2_over(s_sq: ArrayLike, w: ArrayLike) -> Array:
     For w > 0 and small s/w a series in x = s²/w² is used: (1 − x/3 + x²/5 − x³/7 + x⁴/9)/w.
     At s = 0 and w > 0: value 1/w, derivative w.r.t. s² is −1/(3w³). At s = 0 and w ≤ 0 the function is
     singular (atan2(0, −1) = π); the value returned there is π/s evaluated at the masked s = 1, i.e. π,
-    which makes `log(-1)` return the zero vector part (the axis is undefined).
+    finite (`log` and `to_rotvec` handle that point themselves).
     """
     s_sq = jnp.asarray(s_sq)
     w = jnp.asarray(w)
