@@ -215,8 +215,9 @@ def mean(
     - `q`: quaternions, shape `(..., 4)`; need not be unit (each is normalised first, as SciPy's
       `Rotation` does, so a quaternion's length does not weight it; any finite non-zero length the
       dtype holds).
-    - `weights`: optional non-negative weights, broadcastable to `q.shape[:-1]` (a negative weight
-      is a `ValueError`, except under `jit`, where it cannot be seen and gives a meaningless result).
+    - `weights`: optional non-negative weights, broadcastable to `q.shape[:-1]` (a negative, NaN or
+      infinite weight is a `ValueError`, except under `jit`, where it cannot be seen: a negative
+      weight then gives a meaningless result, a non-finite one NaN).
       Weights that sum to zero over the averaged axes leave nothing to average: a `ValueError`, and
       NaN under `jit` (SciPy returns the identity).
     - `axis`: the batch axes to average over: `None` (all, SciPy's default), an int or a tuple. They
@@ -259,13 +260,15 @@ def mean(
                 f"`weights` must broadcast to the batch shape {tuple(q.shape[:-1])} of `q`; "
                 f"got shape {tuple(weights.shape)}."
             ) from e
-        if not is_tracer(weights) and bool(jnp.any(weights < 0)):
+        if not is_tracer(weights):
             values = np.asarray(weights)
-            index = np.unravel_index(np.argmin(values), values.shape)
-            raise ValueError(
-                "`weights` must be non-negative (as for SciPy's `Rotation.mean`); got "
-                f"{values[index]} at index {tuple(int(i) for i in index)}."
-            )
+            bad = ~(np.isfinite(values) & (values >= 0))  # NaN is bad (SciPy: LinAlgError)
+            if bad.any():
+                index = tuple(int(i) for i in np.argwhere(bad)[0])
+                raise ValueError(
+                    "`weights` must be finite and non-negative (as for SciPy's `Rotation.mean`); "
+                    f"got {values[index]} at index {index}."
+                )
         total = jnp.sum(weights, axis=axis)
         if not is_tracer(weights) and bool(jnp.any(total == 0)):
             values = np.asarray(total)

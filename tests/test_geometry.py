@@ -297,12 +297,23 @@ def test_mean_bad_arguments():
     weights = np.ones((4, 3))
     weights[2, 1] = -0.5
     with pytest.raises(
-        ValueError, match=r"`weights` must be non-negative.*-0\.5 at index \(2, 1\)"
+        ValueError, match=r"`weights` must be finite and non-negative.*-0\.5 at index \(2, 1\)"
     ):
         jq.mean(q, weights)
     with pytest.raises(ValueError, match="must be non-negative"):
         Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).mean(weights.reshape(-1))
     jq.mean(q, np.abs(weights))  # zero and positive weights are fine
+    # A NaN or infinite weight gave a NaN mean silently (SciPy raises LinAlgError for NaN).
+    for bad in [np.nan, np.inf]:
+        weights[2, 1] = bad
+        with pytest.raises(
+            ValueError, match=rf"finite and non-negative.*got {bad} at index \(2, 1\)"
+        ):
+            jq.mean(q, weights)
+    with pytest.raises(np.linalg.LinAlgError):
+        Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).mean(np.full(12, np.nan))
+    # Under jit the weights cannot be seen: NaN propagates, as for any non-finite input.
+    assert np.all(np.isnan(jax.jit(jq.mean)(q, weights)))
 
 
 def test_mean_of_zero_total_weight_is_an_error_or_nan():
