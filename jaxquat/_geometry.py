@@ -187,18 +187,43 @@ def random(key: Array, shape: int | tuple[int, ...] = (), dtype=None) -> Array:
 
     **Arguments:**
 
-    - `key`: a `jax.random` key.
+    - `key`: one `jax.random` key: `jax.random.key(seed)`, or a legacy `jax.random.PRNGKey(seed)`
+      (uint32 key data). For a batch of keys use `jax.vmap` (or one key and a batch `shape`).
     - `shape`: batch shape: a non-negative int or a tuple of them.
     - `dtype`: floating dtype; defaults to JAX's default float.
 
     **Returns:** shape `(*shape, 4)`, not sign-canonicalised (uniform on the whole sphere).
 
-    **Raises:** `ValueError` for a negative / non-integer `shape` or a non-floating `dtype`.
+    **Raises:** `ValueError` for anything but one key, a negative / non-integer `shape` or a
+    non-floating `dtype`.
     """
+    key = _check_key(key, "key")
     shape = check_shape(shape, "shape")
     dtype = check_float_dtype(dtype, "dtype")
     x = jax.random.normal(key, shape + (4,), dtype=dtype)
     return x / jnp.sqrt(sum_squares(x, keepdims=True))
+
+
+def _check_key(key, name: str):
+    """`key` as one typed `jax.random` key, or a ValueError naming `name` (JAX's own errors for a seed,
+    a float array or a batch of keys are TypeErrors about key data)."""
+    what = f"shape {tuple(key.shape)}, dtype {key.dtype}" if hasattr(key, "dtype") else repr(key)
+    if hasattr(key, "dtype") and jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key):
+        typed = key
+    else:
+        try:
+            typed = jax.random.wrap_key_data(jnp.asarray(key))
+        except (TypeError, ValueError) as e:
+            raise ValueError(
+                f"`{name}` must be a jax.random key (jax.random.key(seed), or the uint32 key data of "
+                f"jax.random.PRNGKey(seed)); got {what}."
+            ) from e
+    if typed.shape != ():
+        raise ValueError(
+            f"`{name}` must be one key; got {typed.shape[0] if typed.ndim == 1 else typed.shape} "
+            f"keys ({what}). Use jax.vmap over keys, or one key with a batch `shape`."
+        )
+    return typed
 
 
 def mean(

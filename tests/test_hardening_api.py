@@ -172,6 +172,41 @@ def test_random_bad_shape(key, shape):
         jq.random(key, shape)
 
 
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        (42, "got 42"),
+        ("abc", "got 'abc'"),
+        (None, "got None"),
+        (np.zeros(2), r"got shape \(2,\), dtype float64"),
+        (np.zeros(3, np.uint32), r"got shape \(3,\), dtype uint32"),
+    ],
+)
+def test_random_bad_key(bad, message):
+    """JAX's own errors here were TypeErrors about "key data"."""
+    with pytest.raises(ValueError, match=r"`key` must be a jax.random key .*" + message):
+        jq.random(bad, 2)
+
+
+def test_random_batch_of_keys_and_legacy_keys():
+    for keys in [
+        jax.random.split(jax.random.key(0), 3),
+        jax.random.split(jax.random.PRNGKey(0), 3),
+    ]:
+        with pytest.raises(ValueError, match=r"`key` must be one key; got 3 keys .*jax.vmap"):
+            jq.random(keys, 2)
+        assert jax.vmap(lambda k: jq.random(k, 2))(keys).shape == (3, 2, 4)
+    # Legacy uint32 key data (as a NumPy array too) draws what its typed key draws.
+    legacy = jax.random.PRNGKey(7)
+    want = np.asarray(jq.random(jax.random.wrap_key_data(legacy), 5))
+    np.testing.assert_array_equal(jq.random(legacy, 5), want)
+    np.testing.assert_array_equal(jq.random(np.asarray(legacy), 5), want)
+    np.testing.assert_array_equal(
+        jax.jit(lambda k: jq.random(k, 5))(legacy),
+        jax.jit(lambda k: jq.random(k, 5))(jax.random.wrap_key_data(legacy)),
+    )
+
+
 @pytest.mark.parametrize("dtype", ["foo", jnp.int32, np.int64, bool, 3])
 def test_identity_and_random_bad_dtype(key, dtype):
     with pytest.raises(ValueError, match="`dtype` must be a float dtype"):
