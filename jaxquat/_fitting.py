@@ -703,8 +703,10 @@ def fit_angular_velocity(
       and K ≤ T − 1 (the T − 1 rotations between neighbouring observations determine 3 unknowns each).
       Explicit knot times must also be told apart by the observations: the (T − 1) × K matrix of the
       basis functions' integrals over the observation intervals must have rank K, which fails when
-      knots bunch between two neighbouring observations or lie outside the observed times (checked
-      when `knots` and `times` are concrete). Default: `max(minimum, min(20, T // 4))`.
+      knots bunch between two neighbouring observations, or when knots outside the observed times
+      leave the observations unable to tell their values apart (for `"piecewise_linear"`: a knot
+      beyond the first one past either end of the data; the first is determined through the curve's
+      values inside). Checked when `knots` and `times` are concrete. Default: `max(minimum, min(20, T // 4))`.
     - `frame`: `"world"` or `"body"` (the frame ω is expressed in).
     - `weights`: optional non-negative per-observation weights `(T,)` (e.g. 1/σₖ²), at least two
       of them positive. A weight of 0 removes an observation (an outlier, say) from the fit and from

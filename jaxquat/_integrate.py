@@ -854,7 +854,8 @@ def integrate(
     - `dt`: the step (scalar; negative integrates backwards). `num_steps`: a static Python int ≥ 0.
     - `frame`: `"world"` or `"body"`. `method`: see the table. `t0`: the initial time (scalar).
     - `save`: `"all"` → `(num_steps // save_every + 1, *batch, 4)` at steps 0, s, 2s, … (time-major,
-      including q0); `"final"` → `(*batch, 4)`. `save_every`: s ≥ 1 (must divide `num_steps`).
+      including q0); `"final"` → `(*batch, 4)`. `save_every`: s ≥ 1 (with `"all"` it must divide
+      `num_steps`; `"final"` does not use it).
     - `compensated`: the float32 long-run mode (above); `None` = automatic.
     - `renormalize_every`: renormalise the Lie methods' state every this many steps (`None`: never).
       The exponential steps keep |q| = 1 to round-off; this removes the slow drift (7e-11 over 10⁶

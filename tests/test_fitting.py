@@ -945,6 +945,35 @@ def test_explicit_knots_bunched_between_observations_are_rejected(model, knots, 
             jaxquat.fit_angular_velocity(times, qs, model=model, knots=knots)
 
 
+@pytest.mark.parametrize(
+    "knots, determined",
+    [
+        ([0.0, 0.5, 5.0], True),
+        ([-3.0, 0.5, 5.0], True),
+        ([0.0, 0.5, 5.0, 6.0], False),
+        ([-2.0, -1.0, 0.5, 1.0], False),
+    ],
+)
+def test_piecewise_linear_knots_outside_the_observed_times(knots, determined):
+    """Observations on [0, 1]: the first knot past either end is determined through the curve's
+    values inside (the fit recovers a constant ω exactly), a second past the same end is not (a
+    ValueError counting the knots outside), as the rank of the model's Jacobian says."""
+    times = np.linspace(0.0, 1.0, 21)
+    knots = np.asarray(knots)
+    rank = _knot_jacobian_rank(times, knots, "piecewise_linear")
+    assert (rank == 3 * knots.shape[0]) == determined, rank
+    omega = np.array([0.3, -0.2, 0.5])
+    qs = jaxquat.step(jaxquat.identity(), jnp.asarray(omega), jnp.asarray(times))
+    if determined:
+        fit = jaxquat.fit_angular_velocity(times, qs, model="piecewise_linear", knots=knots)
+        np.testing.assert_allclose(
+            fit.omega.values, np.broadcast_to(omega, (len(knots), 3)), atol=1e-9
+        )
+    else:
+        with pytest.raises(ValueError, match="do not determine.*2 knots lie outside the observed"):
+            jaxquat.fit_angular_velocity(times, qs, model="piecewise_linear", knots=knots)
+
+
 @pytest.mark.parametrize("frame", ["world", "body"])
 @pytest.mark.parametrize("gap", [0.35, 1.3])
 def test_constant_fit_across_a_gap_of_more_than_half_a_turn(frame, gap):
