@@ -96,7 +96,8 @@ class EnsembleResult(eqx.Module):
       or `t0` is traced), or `None`.
     - `angle_from_start`: the angle between each body's initial and final orientation, in `[0, π]`.
     - `total_angle`: with `statistics=True`, each body's accumulated rotation angle
-      Σₖ angle(q_k, q_{k+1}) over all steps (for constant ω: |ω|·T), else `None`.
+      Σₖ angle(q_k, q_{k+1}) over all steps, each the geodesic angle in [0, π] (for constant ω:
+      |ω|·T while |ω|Δt ≤ π; a step of |ω|Δt > π counts as 2π − |ω|Δt), else `None`.
     - `max_angle_from_start`: with `statistics=True`, the largest angle from the initial orientation
       over all steps, else `None`.
     - `num_steps`, `num_chunks`, `path`, `seconds` (wall-clock time of the run, compile included).
