@@ -170,7 +170,9 @@ def log(q: ArrayLike) -> Array:
 
     For a unit quaternion the result is the pure quaternion (0, r/2) with r the rotation vector
     (|r| ≤ 2π; use `to_rotvec` for the shortest, |r| ≤ π). Series-switched near v = 0 for w > 0: value
-    (ln w, 0), Jacobian of the vector part w.r.t. v there I₃/w. `exp(log(q)) = q` for every nonzero q.
+    (ln w, 0), Jacobian of the vector part w.r.t. v there I₃/w. `exp(log(q)) = q` to round-off for
+    every nonzero q (XLA:CPU reads subnormal components as 0: a q whose only nonzero components are
+    subnormal is 0, log −∞).
     A negative real q = (w < 0, 0, 0, 0) has no axis of its own: its logarithm takes the x axis,
     (ln|w|, π, 0, 0), as numpy-quaternion does (the value jumps there: every (ln|w|, π·u) with |u| = 1
     is a limit; the Jacobian of the vector part is taken as 0). `log(0)` is −∞ in w.

@@ -220,8 +220,8 @@ def _check_key(key, name: str):
             ) from e
     if typed.shape != ():
         raise ValueError(
-            f"`{name}` must be one key; got {typed.shape[0] if typed.ndim == 1 else typed.shape} "
-            f"keys ({what}). Use jax.vmap over keys, or one key with a batch `shape`."
+            f"`{name}` must be one key; got a batch of keys ({what}). Use jax.vmap over keys, or "
+            "one key with a batch `shape`."
         )
     return typed
 
@@ -278,14 +278,7 @@ def mean(
     outer = q[..., :, None] * q[..., None, :]
     if weights is not None:
         weights = as_float_array(weights, "weights")
-        try:
-            weights = jnp.broadcast_to(weights, q.shape[:-1])
-        except ValueError as e:
-            raise ValueError(
-                f"`weights` must broadcast to the batch shape {tuple(q.shape[:-1])} of `q`; "
-                f"got shape {tuple(weights.shape)}."
-            ) from e
-        if not is_tracer(weights):
+        if not is_tracer(weights):  # the index in the weights as given, before broadcasting
             values = np.asarray(weights)
             bad = ~(np.isfinite(values) & (values >= 0))  # NaN is bad (SciPy: LinAlgError)
             if bad.any():
@@ -294,6 +287,13 @@ def mean(
                     "`weights` must be finite and non-negative (as for SciPy's `Rotation.mean`); "
                     f"got {values[index]} at index {index}."
                 )
+        try:
+            weights = jnp.broadcast_to(weights, q.shape[:-1])
+        except ValueError as e:
+            raise ValueError(
+                f"`weights` must broadcast to the batch shape {tuple(q.shape[:-1])} of `q`; "
+                f"got shape {tuple(weights.shape)}."
+            ) from e
         total = jnp.sum(weights, axis=axis)
         if not is_tracer(weights) and bool(jnp.any(total == 0)):
             values = np.asarray(total)

@@ -679,7 +679,8 @@ class CF4(diffrax.AbstractSolver):
     Dense output: Lie-algebra cubic Hermite. A body-frame field (q̇ = ½ q ω̃) is stepped through its
     world-frame rate, exponentials on the left; `integrate(..., method="cf4", frame="body")` applies
     them on the right, in the body frame. Both are fourth order and agree in the world frame; in
-    the body frame their error constants differ (a coning ω, 32–128 steps: about 5× `integrate`'s).
+    the body frame their error constants differ, by a factor that depends on the motion (2–5× on
+    the coning motions tried, 32–128 steps).
 
     ??? cite "Reference"
 

@@ -310,6 +310,9 @@ def test_mean_bad_arguments():
             ValueError, match=rf"finite and non-negative.*got {bad} at index \(2, 1\)"
         ):
             jq.mean(q, weights)
+    # The index is the weights' own, not the broadcast one's.
+    with pytest.raises(ValueError, match=r"got nan at index \(1,\)"):
+        jq.mean(q, np.array([1.0, np.nan, 2.0]))
     with pytest.raises(np.linalg.LinAlgError):
         Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).mean(np.full(12, np.nan))
     # Under jit the weights cannot be seen: NaN propagates, as for any non-finite input.

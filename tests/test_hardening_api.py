@@ -193,7 +193,9 @@ def test_random_batch_of_keys_and_legacy_keys():
         jax.random.split(jax.random.key(0), 3),
         jax.random.split(jax.random.PRNGKey(0), 3),
     ]:
-        with pytest.raises(ValueError, match=r"`key` must be one key; got 3 keys .*jax.vmap"):
+        with pytest.raises(
+            ValueError, match=r"`key` must be one key; got a batch of keys \(shape \(3,.*jax.vmap"
+        ):
             jq.random(keys, 2)
         assert jax.vmap(lambda k: jq.random(k, 2))(keys).shape == (3, 2, 4)
     # Legacy uint32 key data (as a NumPy array too) draws what its typed key draws.
