@@ -194,8 +194,8 @@ def log(q: ArrayLike) -> Array:
     small = (w < 0) & (s_sq < finfo.tiny / finfo.eps)
     has_axis = jnp.any(v != 0, axis=-1, keepdims=True)
     x_axis = jnp.zeros_like(v).at[..., 0].set(1)
-    masked = jnp.where(small[..., None] & has_axis, v, x_axis)
-    direction = jnp.where(has_axis, unit_vector(masked), x_axis)
+    masked = jnp.where(small[..., None] & has_axis, v, x_axis)  # v = 0: the x axis
+    direction = unit_vector(masked)
     angle = jnp.arctan2(scaled_norm(masked) * has_axis[..., 0], w)
     xyz = jnp.where(small[..., None], angle[..., None] * direction, xyz)
     return jnp.concatenate([log_norm[..., None], xyz], axis=-1)
