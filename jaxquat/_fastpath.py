@@ -43,6 +43,7 @@ from jax.interpreters import ad, batching, mlir
 from jaxtyping import Array
 
 from ._numerics import compensated_add, cos_half, cos_half_minus_one, sinc_half
+from ._sharding import settled
 
 # The series is used when θ² = |ω|²Δt² ≤ this for every step of the run (θ ≤ 0.5 rad per step).
 SERIES_MAX_THETA_SQ = 0.25
@@ -277,6 +278,7 @@ def _run_all(step, carry, num_steps, renormalize_every, compensated=False):
         return _stack(carry[0] if compensated else carry)
 
     ks = jnp.arange(num_steps + 1, dtype=jnp.int32)
+    carry = settled(lambda c: advance(c, ks[0]), carry)
     _, states = lax.scan(lambda c, k: (advance(c, k), saved(c)), carry, ks)
     return states
 
@@ -494,6 +496,7 @@ def _over_steps(
             return lax.fori_loop(0, rest, lambda i, c: advance(c, [num_steps - 1 - i]), c)
         return lax.fori_loop(0, rest, lambda i, c: advance(c, [start + i]), c)
 
+    carry = settled(lambda c: advance(c, [0] * (size if groups else 1)), carry)
     if reverse:
         carry = remaining(carry) if rest else carry
         return lax.fori_loop(0, groups, lambda i, c: group(groups - 1 - i, c), carry, unroll=twice)
@@ -897,6 +900,15 @@ def _sampled_run(
     return state(final), jnp.max(largest, initial=0.0)
 
 
+def _sum_of_none(a):
+    """The sum of none of `a`'s entries: 0, computed from `a` (so linear in it, and tied to it in a
+    jaxpr) without reading it. A slice to size 0 on every axis: reshaping or indexing an array
+    sharded with explicit axis types (`jax.make_mesh`'s default) raises a ShardingTypeError, an empty
+    slice of a sharded axis does not."""
+    a = a[None] if a.ndim == 0 else a
+    return jnp.sum(lax.slice(a, (0,) * a.ndim, (0,) * a.ndim))
+
+
 def _sampled_final_jvp(series, frame, num_steps, renormalize_every, compensated, primals, tangents):
     from jax.custom_derivatives import SymbolicZero
 
@@ -914,8 +926,8 @@ def _sampled_final_jvp(series, frame, num_steps, renormalize_every, compensated,
     # output slot's zero is made from a live tangent: the sum of none of its entries, whose transpose
     # pads an empty array, which XLA drops (one entry's transpose was a pass over the whole cotangent,
     # 2.4 GB for the samples at N = 10⁵).
-    seed = jnp.sum(values[0].reshape(-1)[:0])
-    zero = jnp.zeros(q_final.shape, q_final.dtype) * seed.astype(q_final.dtype)
+    seed = _sum_of_none(values[0])
+    zero = jnp.zeros_like(q_final) * seed.astype(q_final.dtype)
 
     # Checkpointed: its primal-only part (the states, the step rotations) would otherwise be split off
     # by JAX's partial evaluation and run in the forward pass of every reverse-mode derivative, where
@@ -938,15 +950,15 @@ def _sampled_final_jvp(series, frame, num_steps, renormalize_every, compensated,
         )
 
     def matvec(x):  # I − M
-        # Every slot times (1 + 0 · one entry of every primal): unchanged and still linear, but tied
-        # to all the primals, so that the primitive's rule for derivatives w.r.t. its constants gives
-        # every slot a tangent whichever primal an outer derivative is taken w.r.t. (it leaves slots
-        # without one as known zeros, which cannot be transposed: reverse over reverse failed when
-        # the slot was tied to nothing, reverse w.r.t. the samples over forward w.r.t. q₀ when it was
-        # tied to its own primal only). A product, not a sum: JAX derives the transposed map (vecmat)
-        # by transposing this one, which drops additive constants but keeps the factor (a loss
-        # linear in q_T failed).
-        anchor = sum(jnp.sum(p.reshape(-1)[:1]) for p in (q0, samples, h))
+        # Every slot times (1 + 0 · a sum over none of every primal's entries): unchanged and still
+        # linear, but tied to all the primals, so that the primitive's rule for derivatives w.r.t.
+        # its constants gives every slot a tangent whichever primal an outer derivative is taken
+        # w.r.t. (it leaves slots without one as known zeros, which cannot be transposed: reverse
+        # over reverse failed when the slot was tied to nothing, reverse w.r.t. the samples over
+        # forward w.r.t. q₀ when it was tied to its own primal only). A product, not a sum: JAX
+        # derives the transposed map (vecmat) by transposing this one, which drops additive
+        # constants but keeps the factor (a loss linear in q_T failed).
+        anchor = sum(_sum_of_none(p) for p in (q0, samples, h))
         *inputs, out = x
         tied = tuple(a * (1.0 + 0.0 * anchor.astype(a.dtype)) for a in (*inputs, out))
         return tied[:-1] + (tied[-1] - tangent_map(inputs),)

@@ -54,6 +54,7 @@ from ._numerics import (
     sum_squares,
 )
 from ._rotation import from_rotvec
+from ._sharding import settled
 
 LIE_METHODS = ("euler", "midpoint", "magnus4", "magnus6", "magnus8", "cf4")
 # The Magnus methods evaluate ω at Gauss points with q frozen: ω must not depend on q.
@@ -570,6 +571,11 @@ def scan_steps(
     if output is not None and not callable(output):
         raise ValueError(f"`output` must be a callable output(carry) or None; got {output!r}.")
     k0 = jnp.asarray(0, jnp.int32)
+    if num_steps:
+        # Under a mesh of explicit axes, a carry that one step shards (a shared q₀ turned by a
+        # sharded ω) starts out sharded as well.
+        first = None if xs is None else jax.tree_util.tree_map(lambda a: a[0], xs)
+        carry = settled(lambda c: step_fn(k0, c) if xs is None else step_fn(k0, c, first), carry)
     if save == "final":
         _, final = _run(step_fn, (k0, carry), num_steps, xs, checkpoint, unroll)
         return final, None

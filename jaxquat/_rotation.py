@@ -294,11 +294,19 @@ def _parse_seq(seq) -> tuple[bool, tuple[int, int, int]]:
     return seq.islower(), tuple(_AXIS_INDEX[c] for c in seq.lower())
 
 
+def _axis_numbers(ndim: int) -> Array:
+    """(0, 1, 2) along the last of `ndim` axes (the others of size 1: no rank promotion)."""
+    return jnp.arange(3).reshape((1,) * (ndim - 1) + (3,))
+
+
 def _elementary(axis: int, angle: Array) -> Array:
     half = 0.5 * angle
-    zero = jnp.zeros_like(angle)
-    vector = [jnp.sin(half) if i == axis else zero for i in range(3)]
-    return jnp.stack([jnp.cos(half), *vector], axis=-1)
+    # The zero components by a select against sin(half/2), not a zeros_like(angle) stacked beside
+    # it: under vmap over a batch sharded with explicit axis types, zeros_like loses the batch's
+    # sharding and the stack of differently sharded operands is a ShardingTypeError.
+    here = _axis_numbers(half.ndim + 1) == axis
+    vector = jnp.where(here, jnp.sin(half)[..., None], jnp.zeros((), angle.dtype))
+    return jnp.concatenate([jnp.cos(half)[..., None], vector], axis=-1)
 
 
 def _hamilton(p: Array, q: Array) -> Array:
@@ -461,7 +469,10 @@ def from_two_vectors(a: ArrayLike, b: ArrayLike) -> Array:
     has_axis = ~(s_sq <= tiny * tiny)  # NaN takes the computing branch
     s = jnp.sqrt(jnp.where(has_axis, s_sq, jnp.ones_like(s_sq)))
     # The antiparallel fallback axis â × e, e the basis vector of â's smallest component.
-    basis = jnp.eye(3, dtype=a.dtype)[jnp.argmin(jnp.abs(a_unit), axis=-1)]
+    # (A comparison, not an indexed row of eye(3): a gather has no sharding JAX can infer for an
+    # input sharded with explicit axis types.)
+    smallest = jnp.argmin(jnp.abs(a_unit), axis=-1, keepdims=True)
+    basis = (smallest == _axis_numbers(smallest.ndim)).astype(a.dtype)
     fallback = cross(a_unit, basis)
     fallback = fallback / jnp.sqrt(sum_squares(fallback, keepdims=True))
     axis = jnp.where(has_axis, c_perp / s, fallback)

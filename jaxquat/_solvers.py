@@ -538,8 +538,12 @@ class _RKMK(diffrax.AbstractSolver):
             return big_k, small_k, big_u, q_stage, x_stage, f
 
         # The stage increments K_i (and the other leaves' k_i), stacked along a leading stage axis.
-        big_k = jnp.zeros((n_stages,) + u0.shape, u0.dtype).at[0].set(u0)
-        small_k = [jnp.zeros((n_stages,) + jnp.shape(d), d.dtype).at[0].set(d) for d in dxs]
+        # (Stacked from zeros_like, which keeps a sharding with explicit axes; jnp.zeros would not.)
+        def stages(first):
+            return jnp.stack([first] + [jnp.zeros_like(first)] * (n_stages - 1))
+
+        big_k = stages(u0)
+        small_k = [stages(jnp.asarray(d)) for d in dxs]
         carry = (big_k, small_k, jnp.zeros_like(u0), q0, list(x0), f)
         if n_stages > 2 and not self.unroll_stages:
             # One traced stage instead of n (as diffrax's own Runge–Kutta solvers do): measured for
