@@ -15,13 +15,14 @@ calls it with the same arguments (e.g. initial conditions made from the same see
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import math
 import os
 import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
-from functools import partial
+from functools import partial, wraps
 from typing import Any
 
 import equinox as eqx
@@ -63,6 +64,7 @@ from ._numerics import (
     static_key,
 )
 from ._rotation import from_rotvec, rotate_unchecked
+from ._sharding import explicit_mesh
 
 _BODY_AXIS = "bodies"
 _FORMAT = "jaxquat-ensemble"
@@ -533,8 +535,15 @@ def _replace_atomically(target: str, mode: str, write: Callable[[Any], None]) ->
     a file; the temporary is removed if writing fails or is interrupted (Ctrl-C, a full disk)."""
     temporary = target + ".tmp"
     try:
-        with open(temporary, mode) as f:
-            write(f)
+        try:
+            with open(temporary, mode) as f:
+                write(f)
+        except OSError as e:
+            if e.errno is not None:
+                raise
+            # NumPy reports a short write as "40000 requested and 26592 written", with no file and
+            # no error number: say which file, and the likely cause.
+            raise OSError(errno.ENOSPC, f"{e} (is the disk full?)", target) from None
         os.replace(temporary, target)
     except BaseException:
         with contextlib.suppress(OSError):
@@ -685,6 +694,12 @@ def _load_array(path: str, name, where: str, label: str, shape: tuple, dtype) ->
                 )
             f.seek(0)
             array = np.load(f, allow_pickle=False)
+            extra = os.fstat(f.fileno()).st_size - f.tell()
+            if extra:  # (np.load stops at the end of the data and ignores the rest)
+                raise _MalformedEnsemble(
+                    f"malformed jaxquat ensemble: {name}, {where}, has {extra:,} bytes after its "
+                    f"{dtype}{list(shape)} data."
+                )
     except FileNotFoundError:
         raise _MalformedEnsemble(
             f"malformed jaxquat ensemble: {name}, {where}, is missing."
@@ -754,7 +769,7 @@ def _read_ensemble(path: str, index_path: str) -> dict[str, Any]:
         raise _MalformedEnsemble(
             "index.json is not a jaxquat ensemble index (not a jaxquat ensemble)."
         )
-    if index.get("version") != _FORMAT_VERSION:
+    if isinstance(index.get("version"), bool) or index.get("version") != _FORMAT_VERSION:
         raise _MalformedEnsemble(
             f"index.json: format version {index.get('version')!r} is not one this jaxquat reads "
             f"(version {_FORMAT_VERSION})."
@@ -994,6 +1009,45 @@ def _default_chunk(num_steps: int, num_bodies: int, save_every: int | None) -> i
     return chunk
 
 
+def _auto_typed(x: Any) -> Any:
+    """`x` with its sharding's explicit axes made automatic (the same devices and layout, no copy);
+    anything else unchanged."""
+    sharding = getattr(x, "sharding", None)
+    if not (isinstance(x, jax.Array) and isinstance(sharding, NamedSharding)) or is_tracer(x):
+        return x
+    mesh = sharding.mesh
+    if not mesh.explicit_axes:
+        return x
+    auto = Mesh(
+        mesh.devices,
+        mesh.axis_names,
+        axis_types=(jax.sharding.AxisType.Auto,) * len(mesh.axis_names),
+    )
+    return jax.device_put(x, NamedSharding(auto, sharding.spec))
+
+
+def _on_own_mesh(simulate: Callable) -> Callable:
+    """`simulate_ensemble` on its own mesh, whatever mesh the caller has set: it lays the bodies out
+    itself (`body_sharding`), by sharding constraints that a mesh of explicit axes set with
+    `jax.set_mesh` (the default of `jax.make_mesh`) turns into assertions, and it takes arrays
+    sharded with explicit axes as their data (retyped with automatic axes, not copied)."""
+
+    @wraps(simulate)
+    def run(q0, omega, *args, inertia=None, torque=None, devices=None, **kwargs):
+        def retyped(tree):
+            return jax.tree_util.tree_map(_auto_typed, tree)
+
+        q0, omega, inertia, torque = (retyped(x) for x in (q0, omega, inertia, torque))
+        call = partial(simulate, q0, omega, *args, inertia=inertia, torque=torque, devices=devices)
+        if not explicit_mesh():
+            return call(**kwargs)
+        with jax.set_mesh(body_sharding(devices).mesh):
+            return call(**kwargs)
+
+    return run
+
+
+@_on_own_mesh
 def simulate_ensemble(
     q0: ArrayLike,
     omega: ArrayLike | Callable,

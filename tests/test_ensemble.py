@@ -645,7 +645,15 @@ def test_load_ensemble_rejects_malformed_files(tmp_path):
     data.write_bytes(good[:40])  # truncated
     with pytest.raises(ValueError, match="malformed jaxquat ensemble"):
         load_ensemble(run)
+    data.write_bytes(good + b"JUNK" * 10)  # data appended (np.load reads the array and ignores it)
+    with pytest.raises(ValueError, match=r"has 40 bytes after its float\d+\[.*\] data"):
+        load_ensemble(run)
     data.write_bytes(good)
+    load_ensemble(run)
+    version = dict(index, version=True)  # true == 1 in Python: not the format version 1
+    (run / "index.json").write_text(json.dumps(version))
+    with pytest.raises(ValueError, match="format version True is not one this jaxquat reads"):
+        load_ensemble(run)
     del index["records"][0]["steps"]  # an edited index
     (run / "index.json").write_text(json.dumps(index))
     with pytest.raises(ValueError, match="malformed jaxquat ensemble.*KeyError"):
@@ -930,3 +938,35 @@ def test_three_bodies_with_their_own_principal_moments():
         np.testing.assert_allclose(result.final_omega[i], w, rtol=0, atol=1e-14)
     with pytest.raises(ValueError, match=r"diagonal matrices, `jax.vmap\(jnp.diag\)\(moments\)`"):
         simulate_ensemble(q0, omega, 0.01, 5, inertia=moments)
+
+
+def test_a_short_write_names_the_file_and_the_likely_cause(tmp_path, capsys, monkeypatch):
+    """NumPy reports a short write (a full disk) as "40000 requested and 26592 written": an OSError
+    with no file and no error number, which the command line printed as it was (a probe on a full
+    tmpfs). It now names the file and says the disk may be full; no temporary file is left."""
+    import errno
+
+    from jaxquat import _ensemble
+
+    target = str(tmp_path / "states_000000.npy")
+
+    def short(f):
+        f.write(b"partial")
+        raise OSError("40000 requested and 26592 written")
+
+    with pytest.raises(OSError) as raised:
+        _ensemble._replace_atomically(target, "wb", short)
+    assert raised.value.errno == errno.ENOSPC and raised.value.filename == target
+    assert "40000 requested and 26592 written (is the disk full?)" in raised.value.strerror
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+    def save(file, array, **kwargs):  # every data file of a run meets the full disk
+        raise OSError("40000 requested and 26592 written")
+
+    monkeypatch.setattr(_ensemble.np, "save", save)
+    run = tmp_path / "run"
+    argv = ["simulate", "--bodies", "3", "--steps", "4", "--save-every", "2", "--output", str(run)]
+    status = main([*argv, "--no-progress"])
+    err = capsys.readouterr().err
+    assert status == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"jaxquat: error: {run}") and "(is the disk full?)" in err, err
