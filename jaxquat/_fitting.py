@@ -550,7 +550,12 @@ def _check_knots(knots, times: Array, model: str, num_obs: int) -> Array:
                 f"`knots` must be at least {minimum} for model={model!r}; got {knots}."
             )
         _check_determined(int(knots), model, num_obs)
-        return jnp.linspace(times[0], times[-1], int(knots), dtype=times.dtype)
+        evenly = jnp.linspace(times[0], times[-1], int(knots), dtype=times.dtype)
+        if not is_tracer(times):  # (evenly spaced knots over a gap in the observations)
+            _check_identifiable(
+                np.asarray(evenly, np.float64), np.asarray(times, np.float64), model, given=False
+            )
+        return evenly
     knots = as_float_array(knots, "knots")
     if knots.ndim != 1 or knots.shape[0] < minimum:
         raise ValueError(
@@ -588,8 +593,12 @@ def _check_determined(num_knots: int, model: str, num_obs: int) -> None:
         )
 
 
-def _check_identifiable(knots: np.ndarray, times: np.ndarray, model: str) -> None:
-    """Explicit knot times: the T − 1 observation intervals must determine every knot value.
+def _check_identifiable(
+    knots: np.ndarray, times: np.ndarray, model: str, given: bool = True
+) -> None:
+    """The T − 1 observation intervals must determine every knot value (`given`: the knot times
+    were passed; else they are the evenly spaced ones of an int `knots`, which a gap in the
+    observations can leave undetermined too).
 
     To first order in the rotation, the rotation between observations j and j + 1 is
     ∫ ω dt = Σ_i c_i ∫ B_i dt over that interval (B_i the curve's basis functions, c_i the knot
@@ -635,7 +644,12 @@ def _check_identifiable(knots: np.ndarray, times: np.ndarray, model: str) -> Non
             f"`knots`: the observation times do not determine the {num_knots} knot values of "
             f"model={model!r} (rank {rank} of {num_knots}"
             + (f"; {' and '.join(where)}" if where else "")
-            + "). Spread the knots over the observed times or pass an int (evenly spaced knots)."
+            + (
+                "). Spread the knots over the observed times or pass an int (evenly spaced knots)."
+                if given
+                else "), evenly spaced over the observed times: pass fewer knots, or knot times "
+                "placed among the observations."
+            )
         )
 
 

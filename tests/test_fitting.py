@@ -974,6 +974,39 @@ def test_piecewise_linear_knots_outside_the_observed_times(knots, determined):
             jaxquat.fit_angular_velocity(times, qs, model="piecewise_linear", knots=knots)
 
 
+@pytest.mark.parametrize(
+    "model, knots, determined",
+    [
+        ("piecewise_linear", 10, False),
+        ("piecewise_linear", None, False),  # the default count, 7
+        ("spline", 10, False),
+        ("spline", None, True),  # 7 knots of one not-a-knot cubic spline: coupled across the gap
+    ],
+)
+def test_evenly_spaced_knots_over_a_gap_in_the_observations(model, knots, determined):
+    """Observations on [0, 1] and [9, 10]: evenly spaced knots (an int, or the default count) put
+    knots inside the gap, whose values only the one rotation across it may constrain. The fit
+    reported one of infinitely many exact solutions with converged=True (a probe of the command
+    line); it is now the ValueError that explicit knot times in the gap already gave, exactly when
+    the rank of the model's Jacobian w.r.t. the knot values is short. Determined setups, and knot
+    times placed among the observations, fit a constant ω exactly."""
+    times = np.concatenate([np.linspace(0.0, 1.0, 15), np.linspace(9.0, 10.0, 15)])
+    omega = np.array([0.03, -0.02, 0.05])
+    qs = jaxquat.step(jaxquat.identity(), jnp.asarray(omega), jnp.asarray(times))
+    even = np.linspace(times[0], times[-1], 7 if knots is None else knots)
+    assert (_knot_jacobian_rank(times, even, model) == 3 * len(even)) == determined
+    if determined:
+        fit = jaxquat.fit_angular_velocity(times, qs, model=model, knots=knots)
+        np.testing.assert_allclose(fit.omega.values, np.broadcast_to(omega, (7, 3)), atol=1e-9)
+    else:
+        with pytest.raises(ValueError, match="do not determine.*evenly spaced.*pass fewer knots"):
+            jaxquat.fit_angular_velocity(times, qs, model=model, knots=knots)
+    placed = np.array([0.0, 0.5, 1.0, 9.0, 9.5, 10.0])
+    assert _knot_jacobian_rank(times, placed, model) == 3 * len(placed)
+    fit = jaxquat.fit_angular_velocity(times, qs, model=model, knots=placed)
+    np.testing.assert_allclose(fit.omega.values, np.broadcast_to(omega, (6, 3)), atol=1e-9)
+
+
 @pytest.mark.parametrize("frame", ["world", "body"])
 @pytest.mark.parametrize("gap", [0.35, 1.3])
 def test_constant_fit_across_a_gap_of_more_than_half_a_turn(frame, gap):
