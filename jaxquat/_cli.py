@@ -13,13 +13,16 @@ applies) and exit status 2; an unexpected failure gives one line and exit status
 
 from __future__ import annotations
 
+import _thread
 import argparse
 import importlib
 import json
 import math
 import os
 import re
+import signal
 import sys
+import threading
 import time
 import warnings
 from collections.abc import Callable, Sequence
@@ -41,12 +44,56 @@ class _Interrupted(KeyboardInterrupt):
     """Ctrl-C during a command, with what the command left behind (said after "interrupted")."""
 
 
+# Whether the interrupt being handled came from SIGTERM (`timeout`, a cancelled CI job), which the
+# command line handles as Ctrl-C but reports as "terminated", with status 143 (128 + 15).
+_TERMINATED = [False]
+
+
+def _on_sigterm(signum, frame):
+    _TERMINATED[0] = True
+    raise KeyboardInterrupt
+
+
+def _redelivering(previous: Callable[[Any], None]) -> Callable[[Any], None]:
+    """A `sys.unraisablehook` that gives interrupts back to the program instead of printing them.
+
+    A Ctrl-C that lands while Python runs a callback it cannot raise from (JAX's garbage-collection
+    callback, a `__del__`) is only reported ("Exception ignored in: …", a traceback), and the command
+    then ran to its end and exited 0 (a probe hit it about once in 10–45 tries). The signal is
+    tripped again instead, and its KeyboardInterrupt is raised where the command can see it.
+    """
+
+    def hook(unraisable) -> None:
+        if unraisable.exc_type is not None and issubclass(unraisable.exc_type, KeyboardInterrupt):
+            number = signal.SIGTERM if _TERMINATED[0] else signal.SIGINT
+
+            def later() -> None:
+                # Tripped from another thread once this hook has returned: tripped here, the
+                # handler would run at once, inside the hook, whose exceptions are lost as well.
+                time.sleep(0.01)
+                _thread.interrupt_main(number)
+
+            threading.Thread(target=later, daemon=True).start()
+            return
+        previous(unraisable)
+
+    return hook
+
+
 class _Parser(argparse.ArgumentParser):
     """An `ArgumentParser` whose errors become one-line `CommandLineError`s instead of usage + exit,
     and whose options that take a value may be given only once (`_Once`, the default action)."""
 
     def error(self, message: str):  # noqa: D102 (argparse's signature)
         raise CommandLineError(message, prog=self.prog)
+
+    def _print_message(self, message: str, file=None) -> None:
+        # argparse ignores an OSError here: `jaxquat --help > /dev/full` printed nothing and exited
+        # 0. Written and flushed, a failure reaches `main` (one line, status 2).
+        if message:
+            file = file or sys.stderr
+            file.write(message)
+            file.flush()
 
     def add_argument(self, *names, **kwargs):  # noqa: D102 (argparse's signature)
         if names and names[0].startswith("-") and "action" not in kwargs:
@@ -1285,11 +1332,16 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     0 on success, 2 for a bad argument or file (one line on stderr), 130 when interrupted,
     1 for an unexpected error (one line on stderr, never a traceback). Interrupted on the command
-    line (`argv` None), the process ends right after its one line (see `_exit_now`).
+    line (`argv` None), the process ends right after its one line (see `_exit_now`); there SIGTERM
+    is handled as Ctrl-C but said as "terminated", status 143.
     """
     from_command_line = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
     args = None
+    if from_command_line:
+        sys.unraisablehook = _redelivering(sys.unraisablehook)
+        if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+            signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         parser = _build_parser()
         # Everything after `bench` belongs to the benchmark suite.
@@ -1301,6 +1353,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.bench_args = bench_args
         args.global_args = argv[:command] if command is not None else []  # e.g. --distributed
         args.from_command_line = from_command_line
+        if sys.stdout is None:  # started with stdout closed (`>&-`): print() would drop the results
+            raise CommandLineError(
+                "standard output is closed: there is nowhere to write the results"
+            )
         if args.command != "bench":  # bench may relaunch itself first (see `_cmd_bench`)
             _initialize_distributed(args)
         with warnings.catch_warnings():
@@ -1321,10 +1377,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt as e:
         detail = str(e) if isinstance(e, _Interrupted) else ""
-        print(f"{_PROG}: interrupted{' ' if detail else ''}{detail}", file=sys.stderr)
+        word, status = ("terminated", 143) if _TERMINATED[0] else ("interrupted", 130)
+        print(f"{_PROG}: {word}{' ' if detail else ''}{detail}", file=sys.stderr)
         if from_command_line:
-            _exit_now(130)
-        return 130
+            _exit_now(status)
+        return status
     except SystemExit as e:  # --help / --version
         return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
     except BaseException as e:  # noqa: BLE001 (the contract: one line, never a traceback)

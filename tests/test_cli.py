@@ -389,6 +389,47 @@ def test_ctrl_c_during_a_streaming_run_ends_the_process_after_one_line(tmp_path)
     assert not data["complete"] and f"holds {len(data['steps']):,} saved states" in err, err
 
 
+def test_sigterm_during_a_streaming_run_is_one_line_and_143(tmp_path):
+    """SIGTERM (`timeout`, a cancelled CI job) ended the process silently with status −15; it is
+    handled as Ctrl-C (what was saved is said and is on disk) and reported as "terminated"."""
+    run = tmp_path / "run"
+    argv = ["simulate", "--bodies", "1000", "--steps", "2000000000", "--save-every", "10000"]
+    process = _start([*argv, "--chunk-size", "10000", "--no-progress", "--output", run], tmp_path)
+    deadline = time.monotonic() + 300
+    while process.poll() is None and _steps_done(run) == 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    process.send_signal(signal.SIGTERM)
+    out, err = process.communicate(timeout=300)
+    assert process.returncode == 143 and err.count("\n") == 1, (process.returncode, err)
+    assert err.startswith("jaxquat: terminated after ") and out == "", err
+    data = jaxquat.load_ensemble(run)
+    assert not data["complete"] and f"holds {len(data['steps']):,} saved states" in err, err
+
+
+# Ctrl-C that lands in a callback Python cannot raise from (JAX's garbage-collection callback, a
+# __del__) was only reported ("Exception ignored in: ...", a traceback), and the command ran on to
+# exit 0 (a probe hit it in 1 of 10–45 tries). Here a __del__ raises it, deterministically.
+_SWALLOWED_INTERRUPT = """
+import jaxquat._cli
+setup_jax = jaxquat._cli._setup_jax
+class Swallowed:
+    def __del__(self):
+        raise KeyboardInterrupt
+def interrupted_in_a_callback(dtype):
+    Swallowed()  # destroyed at once: its __del__'s KeyboardInterrupt is unraisable
+    return setup_jax(dtype)
+jaxquat._cli._setup_jax = interrupted_in_a_callback
+"""
+
+
+def test_ctrl_c_in_a_callback_python_cannot_raise_from_still_interrupts(tmp_path):
+    argv = ["simulate", "--bodies", "3", "--steps", "2", "--output", tmp_path / "run"]
+    process = _start(argv, tmp_path, setup=_SWALLOWED_INTERRUPT)
+    out, err = process.communicate(timeout=300)
+    assert (process.returncode, err, out) == (130, "jaxquat: interrupted\n", "")
+    assert not (tmp_path / "run").exists()
+
+
 _INTERRUPTED_STARTING = {
     # Ctrl-C while main() sets up (importing and configuring jax, compiling): its own line.
     "main": "import jaxquat._cli\n"
@@ -475,3 +516,39 @@ def test_importing_jaxquat_as_a_library_keeps_the_sigint_handler(tmp_path):
         [sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path, timeout=300
     )
     assert process.stdout == "ok\n", process.stderr
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
+@pytest.mark.parametrize("argv", [["--help"], ["--version"], ["simulate", "--help"]])
+def test_help_into_a_full_device_is_an_error(tmp_path, argv):
+    """argparse ignores a failed write of its help: `--help > /dev/full` exited 0 with nothing."""
+    with open("/dev/full", "w") as full:
+        proc = subprocess.run(
+            [sys.executable, "-m", "jaxquat", *argv],
+            stdout=full,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=tmp_path,
+            env=dict(os.environ, JAX_PLATFORMS="cpu"),
+            timeout=300,
+        )
+    assert (proc.returncode, proc.stderr) == (2, "jaxquat: error: No space left on device\n")
+
+
+def test_fit_with_stdout_closed_is_an_error(tmp_path):
+    """Started with stdout closed (`>&-`), print() drops everything: the fit's result was lost and
+    the command exited 0."""
+    times = np.linspace(0.0, 1.0, 11)
+    _write_csv(tmp_path / "obs.csv", times, jaxquat.step(jaxquat.identity(), jnp.ones(3), times))
+    proc = subprocess.run(  # (a shell closes stdout: preexec_fn would fork this JAX process)
+        ["sh", "-c", 'exec "$0" -m jaxquat fit obs.csv --json >&-', sys.executable],
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+        env=dict(os.environ, JAX_PLATFORMS="cpu"),
+        timeout=300,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr == (
+        "jaxquat: error: standard output is closed: there is nowhere to write the results\n"
+    )
