@@ -146,3 +146,21 @@ def count_lowerings():
         yield lowered
     finally:
         jax.monitoring.unregister_event_duration_listener(listener)
+
+
+def run_on_four_devices(script: str, timeout: float = 600) -> dict:
+    """Run a Python `script` in a subprocess with four host (CPU) devices (the device count is fixed
+    when JAX starts) and return the JSON object its last line of stdout prints."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = dict(
+        os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=timeout
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1])

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import assert_quat_close, random_unit
+from helpers import assert_quat_close, random_unit, run_on_four_devices
 from scipy.spatial.transform import Rotation
 
 import jaxquat
@@ -700,14 +700,7 @@ _SHARDED = textwrap.dedent(
 
 
 def test_bodies_are_sharded_over_four_devices_and_match_one_device():
-    env = dict(
-        os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu"
-    )
-    proc = subprocess.run(
-        [sys.executable, "-c", _SHARDED], capture_output=True, text=True, env=env, timeout=300
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    out = run_on_four_devices(_SHARDED, timeout=300)
     even = out["1000"]
     assert even["devices"] == 4 and even["mesh"] == {"bodies": 4} and "bodies" in even["spec"]
     assert even["shards"] == [250]  # each device holds a quarter of the bodies
@@ -772,18 +765,7 @@ _SHARDED_CALLABLES = textwrap.dedent(
 
 
 def test_callables_carrying_arrays_run_on_four_devices():
-    env = dict(
-        os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu"
-    )
-    proc = subprocess.run(
-        [sys.executable, "-c", _SHARDED_CALLABLES],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=300,
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    out = run_on_four_devices(_SHARDED_CALLABLES, timeout=300)
     for name, case in out.items():
         assert case["shape"] == [2, 3, 4], name
         assert case["single"] <= 1e-13 and case["reference"] <= 1e-13, (name, case)

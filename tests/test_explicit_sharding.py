@@ -7,10 +7,7 @@ carry output must have equal types", an assertion in `with_sharding_constraint`)
 in a subprocess (the device count is fixed when JAX starts).
 """
 
-import json
-import os
-import subprocess
-import sys
+from helpers import run_on_four_devices
 
 _SCRIPT = r"""
 import json
@@ -157,14 +154,7 @@ print(json.dumps(out))
 
 
 def test_explicitly_sharded_inputs_match_unsharded_and_stay_sharded():
-    env = dict(
-        os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu"
-    )
-    proc = subprocess.run(
-        [sys.executable, "-c", _SCRIPT], capture_output=True, text=True, env=env, timeout=600
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    out = run_on_four_devices(_SCRIPT)
     failed = {name: case["error"] for name, case in out.items() if case["error"]}
     assert not failed, failed
     for name, case in out.items():
