@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import _thread
 import argparse
+import contextlib
 import importlib
 import json
 import math
@@ -22,7 +23,6 @@ import os
 import re
 import signal
 import sys
-import threading
 import time
 import warnings
 from collections.abc import Callable, Sequence
@@ -44,14 +44,8 @@ class _Interrupted(KeyboardInterrupt):
     """Ctrl-C during a command, with what the command left behind (said after "interrupted")."""
 
 
-# Whether the interrupt being handled came from SIGTERM (`timeout`, a cancelled CI job), which the
-# command line handles as Ctrl-C but reports as "terminated", with status 143 (128 + 15).
-_TERMINATED = [False]
-
-
-def _on_sigterm(signum, frame):
-    _TERMINATED[0] = True
-    raise KeyboardInterrupt
+# An interrupt that `_redelivering` caught in a callback and has not been raised yet.
+_PENDING_INTERRUPT = [False]
 
 
 def _redelivering(previous: Callable[[Any], None]) -> Callable[[Any], None]:
@@ -65,15 +59,18 @@ def _redelivering(previous: Callable[[Any], None]) -> Callable[[Any], None]:
 
     def hook(unraisable) -> None:
         if unraisable.exc_type is not None and issubclass(unraisable.exc_type, KeyboardInterrupt):
-            number = signal.SIGTERM if _TERMINATED[0] else signal.SIGINT
+            _PENDING_INTERRUPT[0] = True  # (`main` raises it if the command returns first)
 
             def later() -> None:
                 # Tripped from another thread once this hook has returned: tripped here, the
                 # handler would run at once, inside the hook, whose exceptions are lost as well.
                 time.sleep(0.01)
-                _thread.interrupt_main(number)
+                _thread.interrupt_main(signal.SIGINT)
 
-            threading.Thread(target=later, daemon=True).start()
+            # A bare thread: `threading`'s locks are best not taken inside a GC callback, and at
+            # interpreter shutdown no thread can start (nothing is left to interrupt then).
+            with contextlib.suppress(RuntimeError):
+                _thread.start_new_thread(later, ())
             return
         previous(unraisable)
 
@@ -1332,16 +1329,15 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     0 on success, 2 for a bad argument or file (one line on stderr), 130 when interrupted,
     1 for an unexpected error (one line on stderr, never a traceback). Interrupted on the command
-    line (`argv` None), the process ends right after its one line (see `_exit_now`); there SIGTERM
-    is handled as Ctrl-C but said as "terminated", status 143.
+    line (`argv` None), the process ends right after its one line (see `_exit_now`). SIGTERM keeps
+    its default action (the process ends at once, status −15): a Python handler would run only
+    once the main thread is back from XLA, after a compilation or a fit of many seconds.
     """
     from_command_line = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
     args = None
     if from_command_line:
         sys.unraisablehook = _redelivering(sys.unraisablehook)
-        if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
-            signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         parser = _build_parser()
         # Everything after `bench` belongs to the benchmark suite.
@@ -1353,15 +1349,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.bench_args = bench_args
         args.global_args = argv[:command] if command is not None else []  # e.g. --distributed
         args.from_command_line = from_command_line
-        if sys.stdout is None:  # started with stdout closed (`>&-`): print() would drop the results
-            raise CommandLineError(
-                "standard output is closed: there is nowhere to write the results"
-            )
+        if sys.stdout is None and args.command == "fit":  # stdout closed (`>&-`): print() drops it
+            raise CommandLineError("standard output is closed: there is nowhere to write the fit")
         if args.command != "bench":  # bench may relaunch itself first (see `_cmd_bench`)
             _initialize_distributed(args)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            return int(args.func(args) or 0)
+            status = int(args.func(args) or 0)
+        if _PENDING_INTERRUPT[0]:  # swallowed in a callback just before the command returned
+            raise KeyboardInterrupt
+        return status
     except CommandLineError as e:
         print(f"{e.prog}: error: {_one_line(e)}", file=sys.stderr)
         return 2
@@ -1377,11 +1374,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt as e:
         detail = str(e) if isinstance(e, _Interrupted) else ""
-        word, status = ("terminated", 143) if _TERMINATED[0] else ("interrupted", 130)
-        print(f"{_PROG}: {word}{' ' if detail else ''}{detail}", file=sys.stderr)
+        print(f"{_PROG}: interrupted{' ' if detail else ''}{detail}", file=sys.stderr)
         if from_command_line:
-            _exit_now(status)
-        return status
+            _exit_now(130)
+        return 130
     except SystemExit as e:  # --help / --version
         return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
     except BaseException as e:  # noqa: BLE001 (the contract: one line, never a traceback)

@@ -574,8 +574,12 @@ def scan_steps(
     if num_steps:
         # Under a mesh of explicit axes, a carry that one step shards (a shared q₀ turned by a
         # sharded ω) starts out sharded as well.
-        first = None if xs is None else jax.tree_util.tree_map(lambda a: a[0], xs)
-        carry = settled(lambda c: step_fn(k0, c) if xs is None else step_fn(k0, c, first), carry)
+        def first_step(c):
+            if xs is None:
+                return step_fn(k0, c)
+            return step_fn(k0, c, jax.tree_util.tree_map(lambda a: a[0], xs))
+
+        carry = settled(first_step, carry)
     if save == "final":
         _, final = _run(step_fn, (k0, carry), num_steps, xs, checkpoint, unroll)
         return final, None
