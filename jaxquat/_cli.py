@@ -692,18 +692,22 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         f"{dtype.name}); {_directory(config['output'])} holds the invalid results. Use a smaller "
         f"--dt / --omega-scale{_or_float64(dtype.name)}",
     )
-    kind = "rigid bodies" if inertia is not None else "kinematic bodies"
+    kind = "rigid" if inertia is not None else "kinematic"
     rows = [
         (
             "ensemble",
-            f"{config['bodies']:,} {kind}, {config['steps']:,} steps of {_exact(config['dt'])} s",
+            f"{_count(config['bodies'], f'{kind} body', f'{kind} bodies')}, "
+            f"{_count(config['steps'], 'step')} of {_exact(config['dt'])} s",
         ),
         (
             "method / frame / dtype",
             f"{method} / {frame} / {dtype.name}",
         ),
         ("devices", f"{len(jax.devices())} ({jax.devices()[0].platform})"),
-        ("wall time", f"{result.seconds:.2f} s in {result.num_chunks} chunk(s), compile included"),
+        (
+            "wall time",
+            f"{result.seconds:.2f} s in {_count(result.num_chunks, 'chunk')}, compile included",
+        ),
         ("throughput", _throughput(result.throughput)),
     ]
     p5, p50, p95 = _percentiles(np.degrees(np.asarray(result.angle_from_start)))
@@ -984,7 +988,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         _bench.relaunch_with_huge_pages(
             ["-m", "jaxquat", *args.global_args, "bench", *args.bench_args]
         )
-    _initialize_distributed(args)
+    _start_jax(args)
     # The suite's own default preset is quick; a --preset given here is passed on (forcing
     # "--preset quick" first made every --preset, quick included, a "given only once" error).
     return int(_bench.main(list(args.bench_args)) or 0)
@@ -1119,10 +1123,10 @@ def run_demo(*, bodies: int, steps: int, output: str, seed: int, progress: bool)
     devices = jax.devices()
     print(
         "jaxquat demo: uncertainty propagation through the tennis-racket instability\n"
-        f"  {bodies:,} rigid bodies, inertia {_DEMO_INERTIA}, body rate {_DEMO_OMEGA} rad/s "
+        f"  {_count(bodies, 'rigid body', 'rigid bodies')}, inertia {_DEMO_INERTIA}, body rate {_DEMO_OMEGA} rad/s "
         f"± {_DEMO_SIGMA_OMEGA}, attitude ± {math.degrees(_DEMO_SIGMA_ATTITUDE):g}°\n"
-        f"  method cf4, dt {_DEMO_DT} s, {steps} steps, float32, {len(devices)} {devices[0].platform} "
-        f"device(s)\n"
+        f"  method cf4, dt {_DEMO_DT} s, {_count(steps, 'step')}, float32, "
+        f"{_count(len(devices), devices[0].platform + ' device')}\n"
     )
     print(
         f"  {'t [s]':>7}  {'median':>9}  {'95 %':>9}  {'max':>9}   attitude spread from the nominal body"
@@ -1352,7 +1356,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if sys.stdout is None and args.command == "fit":  # stdout closed (`>&-`): print() drops it
             raise CommandLineError("standard output is closed: there is nowhere to write the fit")
         if args.command != "bench":  # bench may relaunch itself first (see `_cmd_bench`)
-            _initialize_distributed(args)
+            _start_jax(args)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             status = int(args.func(args) or 0)
@@ -1393,11 +1397,31 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
 
 
-def _initialize_distributed(args: argparse.Namespace) -> None:
-    if args.distributed:
-        import jax
+def _count(number: int, singular: str, plural: str | None = None) -> str:
+    """`1 step`, `1,000 steps`."""
+    return f"{number:,} {singular if number == 1 else plural or singular + 's'}"
 
+
+def _start_jax(args: argparse.Namespace) -> None:
+    """Connect to the other processes (`--distributed`), then start JAX's backend, so that a backend
+    that cannot start is one clear line: with JAX_PLATFORMS=cuda and no CUDA plugin installed, jax
+    0.10 raises an AssertionError with no message from its first array."""
+    import jax
+
+    if args.distributed:
         jax.distributed.initialize()
+    try:
+        jax.devices()
+    except Exception as e:  # noqa: BLE001 (JAX's own message, when it has one, is kept)
+        detail = _one_line(e) or f"{type(e).__name__} with no message"
+        platforms = os.environ.get("JAX_PLATFORMS", "")
+        if not platforms:
+            raise CommandLineError(f"JAX could not start a backend ({detail})") from None
+        raise CommandLineError(
+            f"JAX could not start the backend JAX_PLATFORMS={platforms!r} asks for ({detail}); is "
+            "its plugin installed (e.g. jax[cuda12]) and its device present? Unset JAX_PLATFORMS "
+            "to run on the CPU"
+        ) from None
 
 
 # Options whose value is a vector `x,y,z` (which may start with a minus sign).

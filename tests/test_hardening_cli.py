@@ -5,6 +5,7 @@ traceback, never exit 0 with NaN or otherwise wrong results); the library raises
 the argument and what was expected.
 """
 
+import importlib.util
 import json
 import os
 import subprocess
@@ -1142,3 +1143,19 @@ def test_load_ensemble_reads_an_index_saved_with_a_byte_order_mark(run, tmp_path
     np.testing.assert_array_equal(after["states"], before["states"])
     simulate_ensemble(np.tile([1.0, 0, 0, 0], (5, 1)), np.ones((5, 3)), 0.1, 2, path=run)
     assert load_ensemble(run)["steps_done"] == 2
+
+
+@pytest.mark.parametrize("platform", ["cuda", "no-such-platform"])
+def test_a_backend_that_cannot_start_is_one_line(tmp_path, platform):
+    # jax 0.10 with JAX_PLATFORMS=cuda and no CUDA plugin raises an AssertionError with no message
+    # from its first array, which the command line printed as "internal error: AssertionError: ".
+    if platform == "cuda" and importlib.util.find_spec("jax_cuda12_plugin") is not None:
+        pytest.skip("a CUDA plugin is installed: the backend may start")
+    env = {**os.environ, "JAX_PLATFORMS": platform}
+    command = [sys.executable, "-m", "jaxquat", "simulate", "--bodies", "4", "--steps", "3"]
+    command += ["--output", str(tmp_path / "run")]
+    done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 2, done
+    _assert_one_line_error(2, done.stdout, done.stderr, f"JAX_PLATFORMS={platform!r}")
+    assert "could not start" in done.stderr and "AssertionError: \n" not in done.stderr
+    assert not (tmp_path / "run").exists()
