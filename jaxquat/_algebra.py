@@ -94,21 +94,33 @@ def norm(q: ArrayLike) -> Array:
     return scaled_norm(q)  # |q| of any finite q the dtype holds, no overflow
 
 
+def no_rotation(q: Array) -> Array:
+    """Where q names no rotation, shape `(...)`: q = 0 (including all-subnormal q, which XLA:CPU
+    flushes to zero) or an infinite component. `inverse`, `normalize`, `to_matrix`, `rotate` and the
+    conversions to axis-angle, rotation vector and Euler angles are all-NaN there instead of
+    inventing an answer (q/|q| of (∞, 0, 0, 0) came out as (NaN, 0, 0, 0), and its matrix kept a
+    diagonal of ones)."""
+    return jnp.all(q == 0, axis=-1) | jnp.any(jnp.isinf(q), axis=-1)
+
+
 @eager_jit()
 def inverse(q: ArrayLike) -> Array:
-    """The inverse q⁻¹ = q*/|q|² (for unit quaternions, the conjugate). NaN for q = 0."""
+    """The inverse q⁻¹ = q*/|q|² (for unit quaternions, the conjugate). NaN for q = 0 and for an
+    infinite component."""
     q = check_trailing(q, 4, "q")
     q, e = prescale(q)
-    return power_of_two_times(conjugate(q) / sum_squares(q, keepdims=True), -e[..., None])
+    out = power_of_two_times(conjugate(q) / sum_squares(q, keepdims=True), -e[..., None])
+    return jnp.where(no_rotation(q)[..., None], jnp.nan, out)
 
 
 @eager_jit()
 def normalize(q: ArrayLike) -> Array:
     """q/|q|, the unit quaternion of the same rotation, for any finite q the dtype holds (|q|² is not
     formed from q itself when it would overflow or underflow). NaN for q = 0 (nothing is invented),
-    which includes a q whose components are all subnormal: XLA:CPU flushes those to zero."""
+    which includes a q whose components are all subnormal: XLA:CPU flushes those to zero, and for an
+    infinite component."""
     q = check_trailing(q, 4, "q")
-    return unit_vector(q)
+    return jnp.where(no_rotation(q)[..., None], jnp.nan, unit_vector(q))
 
 
 def unit_quaternion(q: Array) -> Array:

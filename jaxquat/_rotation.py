@@ -10,6 +10,7 @@ import math
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
+from ._algebra import no_rotation
 from ._numerics import (
     as_float_array,
     atan2_over,
@@ -73,13 +74,6 @@ def rotate_unchecked(v: Array, q: Array) -> Array:
     return v + scale * (w * uv + cross(u, uv))
 
 
-def _undefined(q: Array) -> Array:
-    """Where q names no rotation: q = 0 (including all-subnormal q, which XLA:CPU flushes to zero)
-    or an infinite component. The conversions to axis-angle, rotation vector and Euler angles return
-    NaN there instead of inventing an answer (normalize, to_matrix and rotate give NaN too)."""
-    return jnp.all(q == 0, axis=-1) | jnp.any(jnp.isinf(q), axis=-1)
-
-
 @eager_jit()
 def from_axis_angle(axis: ArrayLike, angle: ArrayLike) -> Array:
     """The unit quaternion (cos(θ/2), sin(θ/2) n̂) of a rotation by `angle` θ about `axis` (right-hand).
@@ -122,7 +116,7 @@ def to_axis_angle(q: ArrayLike) -> tuple[Array, Array]:
     a sign-invariant loss.
     """
     q = prescale(check_trailing(q, 4, "q"))[0]
-    undefined = _undefined(q)
+    undefined = no_rotation(q)
     q = jnp.where(q[..., :1] < 0, -q, q)
     v = q[..., 1:]
     # |v| prescaled on its own: beside w ≈ 1, |v|² of a rotation by less than ~2e-19 rad (float32;
@@ -168,7 +162,7 @@ def to_rotvec(q: ArrayLike) -> Array:
     that of the w ≥ 0 side, finite.
     """
     q = prescale(check_trailing(q, 4, "q"))[0]
-    undefined = _undefined(q)
+    undefined = no_rotation(q)
     q = jnp.where(q[..., :1] < 0, -q, q)
     v = q[..., 1:]
     r = (2.0 * atan2_over(sum_squares(v), q[..., 0]))[..., None] * v
@@ -194,7 +188,8 @@ def to_matrix(q: ArrayLike) -> Array:
         [xy + wz, 1.0 - (xx + zz), yz - wx],
         [xz - wy, yz + wx, 1.0 - (xx + yy)],
     ]
-    return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
+    matrix = jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
+    return jnp.where(no_rotation(q)[..., None, None], jnp.nan, matrix)
 
 
 @eager_jit()
@@ -377,7 +372,7 @@ def to_euler(q: ArrayLike, seq: str) -> Array:
     """
     extrinsic, axes = _parse_seq(seq)
     q = prescale(check_trailing(q, 4, "q"))[0]
-    undefined = _undefined(q)
+    undefined = no_rotation(q)
     i, j, k = axes if extrinsic else axes[::-1]
     symmetric = i == k
     if symmetric:

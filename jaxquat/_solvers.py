@@ -289,7 +289,8 @@ def _dexpinv(u: Array, v: Array) -> Array:
 
     The exact coefficient is $c(θ) = (1 − (θ/2)\cot(θ/2))/θ^2 = 1/12 + θ^2/720 + θ^4/30240 + …$; the series
     through $\mathrm{ad}_u^4$ keeps RKMK methods of order ≤ 5 at their order (Munthe-Kaas 1999), has no
-    singularity at θ = 2π, and is exact whenever u ∥ v (constant ω).
+    singularity at θ = 2π, and is exact whenever u ∥ v (constant ω) in exact arithmetic (round-off
+    across u is amplified by about $θ^2/12 + θ^4/720$: see `RKMK45`).
     """
     uv = cross(u, v)
     coeff = 1.0 / 12.0 + sum_squares(u, keepdims=True) * (1.0 / 720.0)
@@ -636,8 +637,16 @@ class RKMK45(_RKMK, diffrax.AbstractAdaptiveSolver):
     $K_i = \mathrm{dexp}^{-1}_{U_i}(u_i)$, $U_i = \sum_j a_{ij} K_j$, the stages are
     $Q_i = \exp(U_i) ⊗ q_n$ and $q_{n+1} = \exp(\sum_i b_i K_i) ⊗ q_n$: Tsit5 applied to the ODE of the
     rotation vector in the Lie algebra (Munthe-Kaas 1999; dexp⁻¹ by its series through $\mathrm{ad}^4$),
-    so $|q| = 1$ to round-off (the step result is renormalised) and constant ω is integrated exactly.
-    Other leaves of a tuple state `(q, x)` are integrated by Tsit5 itself.
+    so $|q| = 1$ to round-off (the step result is renormalised) and constant ω is integrated exactly
+    in exact arithmetic. Other leaves of a tuple state `(q, x)` are integrated by Tsit5 itself.
+
+    **Step size.** In floating point the dexp⁻¹ series amplifies round-off across ω by about
+    $θ^2/12 + θ^4/720$ per stage, θ = |ω|h. For one step of constant ω from 20 random orientations
+    and axes, against the exponential: ≤ 1.5e-14 rad (float64) and ≤ 8.5e-6 rad (float32) up to
+    θ = 5 rad; 3.3e-13 / 1.3e-4 at θ = 10; 6.4e-10 / 1.2 rad at θ = 20 (CF4: ≤ 2e-6 in float32 at
+    all of these). The series stands for dexp⁻¹ only for θ < 2π, so steps of more than a few
+    radians are outside the method anyway; an adaptive controller rejects them (at the cost of
+    rejected steps), and fixed steps of fast spin belong to `CF4` or the Magnus methods.
 
     The error estimate for the quaternion is $\tfrac12(0, δU) ⊗ q_{n+1}$, $δU = \sum_i (b_i − \hat b_i) K_i$:
     to leading order the 4-vector difference of the 5th- and 4th-order solutions, whose norm is their

@@ -675,7 +675,7 @@ def test_axes_near_the_float64_maximum_keep_their_direction(compile):
 @pytest.mark.parametrize("compile", [False, True])
 def test_conversions_of_no_rotation_are_nan(compile):
     """q = 0 (also all-subnormal q, which XLA:CPU flushes to zero) and infinite components name no
-    rotation: the conversions give NaN, as `normalize` and `to_matrix` do, where they used to invent
+    rotation: the conversions give NaN, as `normalize`, `inverse` and `to_matrix` do, where they used to invent
     the identity (to_rotvec, to_axis_angle) or a quarter-turn (to_euler "xyz" gave (0, −π/2, 0))."""
     qs = np.array([[0.0, 0, 0, 0], [np.inf, 0, 0, 0], [1.0, -np.inf, 0, 0], [1e-320, 0, 0, 1e-320]])
     maybe = jax.jit if compile else (lambda f: f)
@@ -684,7 +684,16 @@ def test_conversions_of_no_rotation_are_nan(compile):
     assert np.all(np.isnan(axis)) and np.all(np.isnan(angle))
     for seq in ["xyz", "ZYX", "zxz", "XYX"]:
         assert np.all(np.isnan(maybe(lambda q, s=seq: jq.to_euler(q, s))(qs))), seq
-    assert np.all(np.isnan(jq.to_matrix(qs[:1])))
+    # So are `to_matrix`, `normalize`, `inverse` and `rotate` (an infinite component gave a matrix
+    # with ones on its diagonal, q/|q| = (NaN, 0, 0, 0) and q⁻¹ = (NaN, −0, −0, −0)).
+    for f in (jq.to_matrix, jq.normalize, jq.inverse, lambda q: jq.rotate(np.ones(3), q)):
+        out = maybe(f)(qs)
+        assert np.all(np.isnan(out)), out
+    np.testing.assert_allclose(
+        maybe(jq.to_matrix)(np.array([0.1, 0.2, -0.3, 0.4])),
+        Rotation.from_quat([0.2, -0.3, 0.4, 0.1]).as_matrix(),
+        atol=1e-15,
+    )
     # Ordinary inputs are untouched: SciPy's conversions of the same (non-unit) quaternions.
     good = np.array([[2.0, 0, 0, 0], [0.1, 0.2, -0.3, 0.4], [-3.0, 1e-3, 0, 0]])
     reference = Rotation.from_quat(good[:, [1, 2, 3, 0]])
