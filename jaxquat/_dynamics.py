@@ -502,7 +502,9 @@ def simulate_rigid_body(
     - `q0`: initial orientation (body → world), shape `(..., 4)`.
     - `omega0`: initial angular velocity, shape `(..., 3)`, in the frame `frame`.
     - `inertia`: body-frame inertia: a symmetric positive-definite `(..., 3, 3)` matrix or principal
-      moments `(..., 3)` (checked when concrete; not under `jit`).
+      moments `(..., 3)` (checked when concrete; not under `jit`). Euler's equations hold for any
+      positive moments, so moments that no body of masses has are accepted: a real body's satisfy
+      I₁ + I₂ ≥ I₃ (their difference is 2Σmz²), and (1, 1, 5) is most likely a typo.
     - `dt`: the time step (a scalar); `num_steps`: the number of steps (a Python int ≥ 0).
     - `torque`: optional callable `torque(t, q, omega) -> (..., 3)` giving the torque in the frame
       `frame` from the time, the orientation and the angular velocity (in that frame). It is evaluated
