@@ -757,33 +757,6 @@ def _check_finite_scalar(x: ArrayLike, name: str) -> Array:
     return checked
 
 
-def check_times_advance(t0, dt, num_steps: int, dtype, what: str) -> None:
-    """A `ValueError` when the run's step times t0 + k·dt, formed in `dtype`, cannot all be told
-    apart: near the run's largest |t| the dtype's spacing exceeds |dt|, so `what` would be called at
-    times that stand still or jump (float32 times at t0 = 1.7e9, a Unix time, are 128 s apart; at
-    1e20 they never move). Checked when `t0` and `dt` are concrete (as given: a Python number under
-    `jit` is) and `dt` ≠ 0; only for callables of time (a constant ω does not see the time). Stage
-    times t + c·dt inside a step are rounded to the same spacing, which is not checked: there the
-    error is at most half the spacing, under half a step."""
-    try:
-        t0_value, dt_value = float(t0), float(dt)
-    except (TypeError, jax.errors.ConcretizationTypeError):
-        return
-    if dt_value == 0.0:
-        return
-    largest = max(abs(t0_value), abs(t0_value + num_steps * dt_value))
-    spacing = float(np.spacing(np.asarray(largest, jnp.dtype(dtype))))
-    if spacing > abs(dt_value):
-        wider = jnp.dtype(dtype).itemsize < 8
-        raise ValueError(
-            f"`t0` = {t0_value:g} and `dt` = {dt_value:g} over {num_steps:,} steps: {jnp.dtype(dtype)} "
-            f"times near {largest:.3g} are {spacing:.3g} apart, more than a step, so the step times "
-            f"t0 + k·dt at which {what} is called cannot all be told apart. Count time from a nearer "
-            f"origin (a smaller |t0|, with {what} shifted to match)"
-            + (" or work in float64 (jax_enable_x64 and float64 inputs)." if wider else ".")
-        )
-
-
 def _check_magnus_omega(omega: Callable, method: str, t, q: Array) -> None:
     """A `ValueError` for a Magnus `method` with an `omega(t, q)` that depends on q (`integrate` and
     `simulate_ensemble`)."""
@@ -928,10 +901,8 @@ def integrate(
 
     **Errors:** a `ValueError` naming the argument for a bad `method`, `frame`, `save`, `save_every`,
     `num_steps`, `unroll` or `renormalize_every` (static ints; a bool is not accepted), a non-bool
-    `checkpoint` / `compensated`, a non-scalar `dt`/`t0`, an `omega` of the wrong shape, a
-    q-dependent `omega` with a Magnus method, or an `omega(t, q)` whose step times t0 + k·dt the
-    time dtype cannot tell apart (its spacing near the run's largest |t| exceeds |dt|: float32 at a
-    Unix time such as t0 = 1.7e9 is 128 s apart).
+    `checkpoint` / `compensated`, a non-scalar `dt`/`t0`, an `omega` of the wrong shape, or a
+    q-dependent `omega` with a Magnus method.
 
     Example:
     ```python
@@ -954,9 +925,6 @@ def integrate(
     t0 = _check_finite_scalar(t0, "t0")
     if not callable(omega):
         omega = check_trailing(omega, 3, "omega")
-    elif not isinstance(omega, Sampled):  # (samples are looked up by the time since their t0)
-        time_dtype = jnp.promote_types(jnp.result_type(t0, dt), q0.dtype)
-        check_times_advance(t0_given, dt_given, num_steps, time_dtype, "`omega(t, q)`")
     # Samples on the integration grid (same dt and t0, known before tracing) are fed to the scan as
     # per-step inputs: reverse mode then costs O(num_steps) instead of a full-size scatter per step.
     aligned = (
