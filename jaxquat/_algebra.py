@@ -116,9 +116,9 @@ def inverse(q: ArrayLike) -> Array:
 @eager_jit()
 def normalize(q: ArrayLike) -> Array:
     """q/|q|, the unit quaternion of the same rotation, for any finite q the dtype holds (|q|² is not
-    formed from q itself when it would overflow or underflow). NaN for q = 0 (nothing is invented),
-    which includes a q whose components are all subnormal: XLA:CPU flushes those to zero, and for an
-    infinite component."""
+    formed from q itself when it would overflow or underflow). NaN for q = 0 (nothing is invented)
+    and for a q with an infinite component; q = 0 includes a q whose components are all subnormal,
+    which XLA:CPU flushes to zero."""
     q = check_trailing(q, 4, "q")
     return jnp.where(no_rotation(q)[..., None], jnp.nan, unit_vector(q))
 
