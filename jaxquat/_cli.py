@@ -1123,7 +1123,8 @@ def run_demo(*, bodies: int, steps: int, output: str, seed: int, progress: bool)
     devices = jax.devices()
     print(
         "jaxquat demo: uncertainty propagation through the tennis-racket instability\n"
-        f"  {_count(bodies, 'rigid body', 'rigid bodies')}, inertia {_DEMO_INERTIA}, body rate {_DEMO_OMEGA} rad/s "
+        f"  {_count(bodies, 'rigid body', 'rigid bodies')}, inertia {_DEMO_INERTIA}, "
+        f"body rate {_DEMO_OMEGA} rad/s "
         f"± {_DEMO_SIGMA_OMEGA}, attitude ± {math.degrees(_DEMO_SIGMA_ATTITUDE):g}°\n"
         f"  method cf4, dt {_DEMO_DT} s, {_count(steps, 'step')}, float32, "
         f"{_count(len(devices), devices[0].platform + ' device')}\n"
