@@ -17,6 +17,7 @@ import _thread
 import argparse
 import contextlib
 import importlib
+import io
 import json
 import math
 import os
@@ -988,7 +989,14 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         _bench.relaunch_with_huge_pages(
             ["-m", "jaxquat", *args.global_args, "bench", *args.bench_args]
         )
-    _start_jax(args)
+    try:  # --help and bad arguments are the suite's to print, with no backend needed
+        quiet = io.StringIO()  # (printed by `main` below)
+        with contextlib.redirect_stdout(quiet), contextlib.redirect_stderr(quiet):
+            _bench._parse(list(args.bench_args))
+    except (_bench._ArgumentError, SystemExit):
+        pass
+    else:
+        _start_jax(args)
     # The suite's own default preset is quick; a --preset given here is passed on (forcing
     # "--preset quick" first made every --preset, quick included, a "given only once" error).
     return int(_bench.main(list(args.bench_args)) or 0)

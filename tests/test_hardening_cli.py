@@ -1159,3 +1159,15 @@ def test_a_backend_that_cannot_start_is_one_line(tmp_path, platform):
     _assert_one_line_error(2, done.stdout, done.stderr, f"JAX_PLATFORMS={platform!r}")
     assert "could not start" in done.stderr and "AssertionError: \n" not in done.stderr
     assert not (tmp_path / "run").exists()
+    # The suite's --help and its argument errors need no backend (they printed the backend's error).
+    bench = [sys.executable, "-m", "jaxquat", "bench", "--no-huge-pages"]
+    done = subprocess.run([*bench, "--help"], capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 0 and done.stdout.startswith("usage: jaxquat bench"), done
+    assert done.stdout.count("usage:") == 1 and done.stderr == "", done
+    done = subprocess.run(
+        [*bench, "--preset", "x"], capture_output=True, text=True, env=env, timeout=300
+    )
+    _assert_one_line_error(2, done.stdout, done.stderr, "argument --preset: invalid choice")
+    output = ["--output", str(tmp_path / "bench")]
+    done = subprocess.run([*bench, *output], capture_output=True, text=True, env=env, timeout=300)
+    _assert_one_line_error(2, done.stdout, done.stderr, f"JAX_PLATFORMS={platform!r}")
