@@ -432,3 +432,126 @@ def test_deformable_body_positions_may_return_a_nested_list():
         ValueError, match=r"`positions\(t\)` must return an array of shape \(n, 3\)"
     ):
         jq.simulate_deformable_body(*args, lambda t: "abc", jnp.array([1.0, 0, 0, 0]), 0.1, 5)
+
+
+# --------------------------------------------------------------------------------------------------
+# Step times that the time dtype cannot tell apart
+
+
+def _time_callables():
+    """The four entry points that call a function of time, each as run(q0, t0, dt, shift) with the
+    function of time written in the time τ = t − shift; one-stage methods, whose only times are the
+    step times (a stage at t + c·dt is rounded to the spacing too)."""
+
+    def omega(shift):
+        return lambda t, q: jnp.stack([0.5 + 0.01 * (t - shift), 0.2 + 0 * t, 0 * t]).astype(
+            q.dtype
+        )
+
+    def torque(shift):
+        return lambda t, q, w: jnp.stack([0.1 * (t - shift), 0 * t, 0 * t]).astype(q.dtype)
+
+    def positions(shift):
+        return lambda t: jnp.diag(jnp.stack([1.0 + 0.01 * (t - shift), 1.5 + 0 * t, 2.0 + 0 * t]))
+
+    return {
+        "integrate": lambda q0, t0, dt, s: jq.integrate(q0, omega(s), dt, 4, t0=t0, save="final"),
+        "simulate_rigid_body": lambda q0, t0, dt, s: jq.simulate_rigid_body(
+            q0,
+            OMEGA.astype(q0.dtype),
+            MOMENTS.astype(q0.dtype),
+            dt,
+            4,
+            torque=torque(s),
+            t0=t0,
+            method="euler",
+        )[0][-1],
+        "simulate_deformable_body": lambda q0, t0, dt, s: jq.simulate_deformable_body(
+            jnp.ones(3, q0.dtype), positions(s), q0, dt, 4, t0=t0, method="euler"
+        )[-1],
+        "simulate_ensemble": lambda q0, t0, dt, s: jq.simulate_ensemble(
+            q0[None], omega(s), dt=dt, num_steps=4, t0=t0
+        ).final[0],
+    }
+
+
+@pytest.mark.parametrize("name", list(_time_callables()))
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_step_times_the_dtype_cannot_tell_apart_are_an_error(name, dtype):
+    """t0 + k·dt in the run's time dtype: where its spacing exceeds |dt| consecutive step times
+    coincide and the function of time stands still (float32 at a Unix time, 1.7e9, is 128 s apart;
+    at 1e20 even float64 never moves). Those are a `ValueError`; at the boundary (spacing = dt, every
+    step time exact, also a run ending exactly on 2ⁿ where the spacing doubles) the run equals the
+    same run counted from t0 = 0, bit for bit."""
+    run = _time_callables()[name]
+    q0 = Q0.astype(dtype)
+    # simulate_ensemble forms its times in float64 when x64 is on (this suite): float64 cases only.
+    time_dtype = "float64" if name == "simulate_ensemble" else dtype
+    exponent = np.finfo(time_dtype).nmant + 1  # spacing(2**exponent) = 2: more than a step of 1
+    t0, dt = np.asarray(2.0**exponent, time_dtype), np.asarray(1.0, time_dtype)
+    with pytest.raises(ValueError, match=rf"`t0` = .* {time_dtype} times near .* are 2 apart"):
+        run(q0, t0, dt, t0)
+    with pytest.raises(ValueError, match="smaller .t0."):
+        jax.jit(lambda: run(q0, 1e20, 0.01, 0.0))()
+    zero = np.zeros_like(t0)
+    for t0 in (2.0 ** (exponent - 1), 2.0**exponent - 4):  # spacing 1 = dt: every time exact
+        t0 = np.asarray(t0, time_dtype)
+        np.testing.assert_array_equal(run(q0, t0, dt, t0), run(q0, zero, dt, 0.0))
+    # Four steps from 2**exponent − 3 end at 2**exponent + 1, past the boundary: the run's length
+    # is to blame, not its origin.
+    with pytest.raises(ValueError, match=r"reach t = .* Split the run into shorter runs"):
+        t0 = np.asarray(2.0**exponent - 3, time_dtype)
+        run(q0, t0, dt, t0)
+    run(q0, 0.0, 0.0, 0.0)  # dt = 0: time stands still by request
+
+
+def test_step_times_matter_only_for_functions_of_time():
+    """A constant ω or samples (looked up by the time since their own t0) never see t0 + k·dt, nor
+    does a callable whose output does not depend on t (a damping torque, an ω(q), positions that
+    do not change), and `num_steps = 0` has no step times to tell apart."""
+    final = jq.integrate(Q0, OMEGA, 0.01, 5, t0=1e20, save="final")
+    np.testing.assert_allclose(final, jq.integrate(Q0, OMEGA, 0.01, 5, save="final"), atol=0)
+    samples = jq.sampled(jnp.tile(OMEGA, (5, 1)), 0.01, t0=1e20)
+    final = jq.integrate(Q0, samples, 0.01, 5, t0=1e20, save="final")
+    np.testing.assert_allclose(final, jq.integrate(Q0, OMEGA, 0.01, 5, save="final"), atol=0)
+
+    def omega_of_q(t, q):  # reads t only for its dtype and shape
+        return jnp.zeros_like(t) + 0.5 * q[..., 1:]
+
+    args = (Q0, omega_of_q, 0.01, 5)
+    np.testing.assert_array_equal(
+        jq.integrate(*args, t0=1e20, method="rk4"), jq.integrate(*args, method="rk4")
+    )
+    ensemble = jq.simulate_ensemble(Q0[None], omega_of_q, dt=0.01, num_steps=5, t0=1e20)
+    np.testing.assert_array_equal(ensemble.final[0], jq.integrate(*args, save="final"))
+
+    def damping(t, q, w):
+        return -0.1 * w
+
+    # float16 times past 32 are 0.03 apart, more than dt = 0.01: harmless for a damping torque.
+    q16, w16, i16 = (x.astype(jnp.float16) for x in (Q0, OMEGA, MOMENTS))
+    for t0 in (40.0, 0.0):
+        qs, ws = jq.simulate_rigid_body(
+            q16, w16, i16, 0.01, 4_000 if t0 == 0 else 4, torque=damping, t0=t0
+        )
+        assert qs.dtype == jnp.float16 and bool(jnp.isfinite(qs).all())
+    ensemble = jq.simulate_ensemble(
+        Q0[None], OMEGA, dt=0.01, num_steps=5, t0=1e20, inertia=MOMENTS, torque=damping
+    )
+    expected = jq.simulate_rigid_body(Q0, OMEGA, MOMENTS, 0.01, 5, torque=damping, save="final")
+    np.testing.assert_allclose(ensemble.final[0], expected[0], atol=1e-15)
+
+    still = jnp.diag(jnp.array([1.0, 1.5, 2.0]))
+    qs, _ = jq.simulate_deformable_body(
+        jnp.ones(3), lambda t: still, Q0, 0.01, 5, t0=1e20, angular_momentum=jnp.array([0, 0, 1.0])
+    )
+    expected, _ = jq.simulate_deformable_body(
+        jnp.ones(3), lambda t: still, Q0, 0.01, 5, angular_momentum=jnp.array([0, 0, 1.0])
+    )
+    np.testing.assert_array_equal(qs, expected)
+
+    def omega_of_t(t, q):
+        return jnp.stack([0.5 + 0.01 * t, 0.2 + 0 * t, 0 * t])
+
+    final = jq.integrate(Q0, omega_of_t, 0.01, 0, t0=1e20, save="final")  # no steps: q0
+    np.testing.assert_array_equal(final, Q0)
