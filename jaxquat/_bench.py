@@ -29,8 +29,10 @@ note, when they are not installed.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import datetime
+import io
 import json
 import math
 import os
@@ -1773,6 +1775,18 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
         "benchmarks/run.py relaunch with it by default, for every contender)",
     )
     return parser.parse_args(argv)
+
+
+def will_run(argv: list[str]) -> bool:
+    """Whether `main(argv)` gets past its argument parser: False for --help or arguments the parser
+    rejects, which `main` prints without JAX's backend (the command line starts the backend only
+    when True)."""
+    try:
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            _parse(argv)
+    except (_ArgumentError, SystemExit):
+        return False
+    return True
 
 
 def main(argv: list[str] | None = None) -> int:

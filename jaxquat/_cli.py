@@ -17,7 +17,6 @@ import _thread
 import argparse
 import contextlib
 import importlib
-import io
 import json
 import math
 import os
@@ -989,13 +988,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         _bench.relaunch_with_huge_pages(
             ["-m", "jaxquat", *args.global_args, "bench", *args.bench_args]
         )
-    try:  # --help and bad arguments are the suite's to print, with no backend needed
-        quiet = io.StringIO()  # (printed by `main` below)
-        with contextlib.redirect_stdout(quiet), contextlib.redirect_stderr(quiet):
-            _bench._parse(list(args.bench_args))
-    except (_bench._ArgumentError, SystemExit):
-        pass
-    else:
+    if _bench.will_run(list(args.bench_args)):  # (--help and bad arguments need no backend)
         _start_jax(args)
     # The suite's own default preset is quick; a --preset given here is passed on (forcing
     # "--preset quick" first made every --preset, quick included, a "given only once" error).

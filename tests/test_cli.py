@@ -189,6 +189,7 @@ def test_bench_passes_its_arguments_to_the_suite(monkeypatch, capsys):
     calls = []
     fake = type(sys)("jaxquat._bench")
     fake.main = lambda argv: calls.append(argv) or 0
+    fake.will_run = lambda argv: True
     monkeypatch.setitem(sys.modules, "jaxquat._bench", fake)
     monkeypatch.setattr(jaxquat, "_bench", fake, raising=False)
     status, _, err = _run(["bench", "--workloads", "W1"], capsys)
@@ -207,6 +208,15 @@ def test_bench_without_a_preset_runs_the_quick_one():
 
     assert _bench._parse([]).preset == "quick"
     assert _bench._parse(["--preset", "micro"]).preset == "micro"
+
+
+def test_bench_will_run_is_quiet_and_false_for_help_and_bad_arguments(capsys):
+    from jaxquat import _bench
+
+    assert _bench.will_run([]) and _bench.will_run(["--workloads", "W1", "--preset", "micro"])
+    assert not _bench.will_run(["--help"]) and not _bench.will_run(["--preset", "x"])
+    assert not _bench.will_run(["--repeats", "0"])
+    assert capsys.readouterr() == ("", "")
 
 
 def test_help_exits_0(capsys):

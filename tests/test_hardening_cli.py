@@ -1092,6 +1092,7 @@ def test_bench_relaunch_keeps_the_options_before_bench(monkeypatch, capsys):
     fake = types.ModuleType("jaxquat._bench")
     fake.relaunch_with_huge_pages = lambda command: calls.append(list(command))
     fake.main = lambda argv: 0
+    fake.will_run = lambda argv: True
     monkeypatch.setitem(sys.modules, "jaxquat._bench", fake)
     monkeypatch.setattr("jax.distributed.initialize", lambda: calls.append("initialize"))
     from jaxquat import _cli
