@@ -48,9 +48,7 @@ from ._integrate import (
     _compensated_add,
     _compensated_step,
     _eps_of,
-    _reads_time,
     _rotation_minus_one,
-    check_times_advance,
     lie_step,
     scan_steps,
 )
@@ -1131,8 +1129,7 @@ def simulate_ensemble(
     non-empty directory that is not a jaxquat ensemble, or one whose index.json is unreadable or
     malformed; a run whose `dt` or `t0` is traced) or `devices` (not a non-empty sequence of
     distinct `jax.Device`s); for an `omega(t, q)` of the wrong shape; and, as in `integrate`, for a
-    q-dependent `omega` with a Magnus method and for an `omega(t, q)` or `torque` that reads t when
-    the time dtype cannot tell the step times t0 + k·dt apart.
+    q-dependent `omega` with a Magnus method.
 
     **Example:**
     ```python
@@ -1226,13 +1223,6 @@ def simulate_ensemble(
     padded = -(-num_bodies // num_devices) * num_devices
     # Times in float64 when x64 is on (as `integrate`): t_k = t0 + k·dt with the integer step k.
     time_dtype = jnp.promote_types(jnp.result_type(float), dtype)
-    states = jax.ShapeDtypeStruct((padded, 4), dtype), jax.ShapeDtypeStruct((padded, 3), dtype)
-    if torque is not None:
-        reads = _reads_time(torque, *states)
-        check_times_advance(t0, dt, num_steps, time_dtype, "`torque(t, q, omega)`", reads)
-    elif omega_fn is not None and not isinstance(omega_fn, Sampled):  # (samples: time since t0)
-        reads = _reads_time(omega_fn, states[0])
-        check_times_advance(t0, dt, num_steps, time_dtype, "`omega(t, q)`", reads)
 
     def place(x, element_shape, fill):
         x = jnp.broadcast_to(x.astype(dtype), batch + element_shape)

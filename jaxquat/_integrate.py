@@ -22,7 +22,6 @@ normalise).
 
 from __future__ import annotations
 
-import fractions
 import functools
 import math
 import operator
@@ -758,65 +757,6 @@ def _check_finite_scalar(x: ArrayLike, name: str) -> Array:
     return checked
 
 
-def check_times_advance(
-    t0, dt, num_steps: int, dtype, what: str, reads_time: Callable[[jax.ShapeDtypeStruct], bool]
-) -> None:
-    """A `ValueError` when the run's step times t0 + k·dt (k = 0..num_steps), formed in `dtype`,
-    cannot all be told apart and the callable `what` reads them: near the run's largest |t| the
-    dtype's spacing exceeds |dt|, so it would be called at times that stand still or jump (float32
-    times at t0 = 1.7e9, a Unix time, are 128 s apart; at 1e20 even float64 never moves).
-
-    Checked when `t0` and `dt` are concrete (as given: a Python number under `jit` is), `dt` ≠ 0 and
-    `num_steps` > 0, on `t0` and `dt` rounded to `dtype` (as the run uses them; one that overflows
-    it is an error too) with the run's end t0 + num_steps·dt in exact arithmetic. Times up to the
-    power of two above which the spacing exceeds |dt| are fine, that power included (a run ending
-    exactly on 2ⁿ has exact times). Only past it is `reads_time(t)`, given the abstract time, asked
-    whether the callable's output depends on t (a data-flow check on its jaxpr, `_depends_on`): a
-    damping torque −c·ω or an ω(q) never sees the time and is not rejected. Stage times t + c·dt
-    inside a step are rounded to the same spacing and are not checked separately: there the error is
-    at most half the spacing, under half a step."""
-    try:
-        t0_value, dt_value = float(t0), float(dt)
-    except (TypeError, jax.errors.ConcretizationTypeError):
-        return
-    dtype = jnp.dtype(dtype)
-    with np.errstate(over="ignore"):
-        t0_value, dt_value = (float(np.asarray(x, dtype)) for x in (t0_value, dt_value))  # as run
-    if dt_value == 0.0 or num_steps == 0:
-        return
-    if not (math.isfinite(t0_value) and math.isfinite(dt_value)):
-        if reads_time(jax.ShapeDtypeStruct((), dtype)):
-            name = "t0" if not math.isfinite(t0_value) else "dt"
-            raise ValueError(
-                f"`{name}` = {float(t0 if name == 't0' else dt):g} overflows {dtype} (largest "
-                f"{float(np.finfo(dtype).max):g}), so {what} would be called at infinite times."
-            )
-        return
-    # Times beyond ±limit (a power of two) are more than |dt| apart; limit itself is exact.
-    limit = 2.0 ** math.frexp(abs(dt_value) / float(np.finfo(dtype).eps))[1]
-    end = fractions.Fraction(t0_value) + num_steps * fractions.Fraction(dt_value)  # exact
-    if max(abs(t0_value), abs(end)) <= limit or not reads_time(jax.ShapeDtypeStruct((), dtype)):
-        return
-    widen = " or work in float64 (jax_enable_x64 and float64 inputs)" if dtype.itemsize < 8 else ""
-    problem = (
-        f"so the step times t0 + k·dt at which {what} is called cannot all be told apart "
-        "(it would see times that stand still or jump)."
-    )
-    if abs(t0_value) >= limit:  # the origin is to blame
-        raise ValueError(
-            f"`t0` = {t0_value:g} and `dt` = {dt_value:g}: {dtype} times near {abs(t0_value):.3g} "
-            f"are {np.spacing(np.asarray(abs(t0_value), dtype)):.3g} apart, more than a step, "
-            f"{problem} Count time from a nearer origin (a smaller |t0|, with {what} shifted to "
-            f"match){widen}."
-        )
-    raise ValueError(  # the run's length is to blame
-        f"`t0` = {t0_value:g}, `dt` = {dt_value:g} and `num_steps` = {num_steps:,} reach "
-        f"t = {float(end):.6g}, and {dtype} times beyond ±{limit:g} are more than a step apart, "
-        f"{problem} Split the run into shorter runs, each counting time from its own start (with "
-        f"{what} shifted to match){widen}."
-    )
-
-
 def _check_magnus_omega(omega: Callable, method: str, t, q: Array) -> None:
     """A `ValueError` for a Magnus `method` with an `omega(t, q)` that depends on q (`integrate` and
     `simulate_ensemble`)."""
@@ -827,28 +767,17 @@ def _check_magnus_omega(omega: Callable, method: str, t, q: Array) -> None:
         )
 
 
-def _reads_time(fn: Callable, *others) -> Callable[[jax.ShapeDtypeStruct], bool]:
-    """For `check_times_advance`: whether `fn(t, *others)` depends on t (the others abstract, with
-    their shapes and dtypes)."""
-    others = [jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)) for x in others]
-    return lambda t: _depends_on(fn, t, *others, argnums=(0,))
-
-
 def _depends_on_q(omega: Callable, t, q: Array) -> bool:
     """Whether the output of `omega(t, q)` depends on q (a conservative data-flow check on its jaxpr)."""
     return _depends_on(lambda q_: omega(t, q_), q)
 
 
-def _depends_on(fn: Callable, *operands, argnums: tuple[int, ...] | None = None) -> bool:
-    """Whether the output of `fn(*operands)` depends on any leaf of the operands (or of those at
-    `argnums`) (a conservative data-flow check on its jaxpr; operands may be abstract,
-    `jax.ShapeDtypeStruct`s)."""
+def _depends_on(fn: Callable, *operands) -> bool:
+    """Whether the output of `fn(*operands)` depends on any leaf of the operands (a conservative
+    data-flow check on its jaxpr)."""
     closed = jax.make_jaxpr(fn)(*operands)
     jaxpr = closed.jaxpr
-    counts = [len(jax.tree.leaves(x)) for x in operands]
-    starts = np.cumsum([0, *counts])
-    chosen = range(len(operands)) if argnums is None else argnums
-    dependent = {v for i in chosen for v in jaxpr.invars[starts[i] : starts[i + 1]]}
+    dependent = set(jaxpr.invars)
 
     def is_var(v):
         return isinstance(v, jex_core.Var) and not isinstance(v, jex_core.Literal)
@@ -972,11 +901,8 @@ def integrate(
 
     **Errors:** a `ValueError` naming the argument for a bad `method`, `frame`, `save`, `save_every`,
     `num_steps`, `unroll` or `renormalize_every` (static ints; a bool is not accepted), a non-bool
-    `checkpoint` / `compensated`, a non-scalar `dt`/`t0`, an `omega` of the wrong shape, a
-    q-dependent `omega` with a Magnus method, or an `omega(t, q)` that reads t when the time dtype
-    cannot tell its step times t0 + k·dt apart (its spacing near the run's largest |t| exceeds |dt|:
-    float32 at a Unix time such as t0 = 1.7e9 is 128 s apart; the message says whether t0 or the
-    run's length is to blame). A callable whose output does not depend on t is never rejected.
+    `checkpoint` / `compensated`, a non-scalar `dt`/`t0`, an `omega` of the wrong shape, or a
+    q-dependent `omega` with a Magnus method.
 
     Example:
     ```python
@@ -999,11 +925,6 @@ def integrate(
     t0 = _check_finite_scalar(t0, "t0")
     if not callable(omega):
         omega = check_trailing(omega, 3, "omega")
-    elif not isinstance(omega, Sampled):  # (samples are looked up by the time since their t0)
-        time_dtype = jnp.promote_types(jnp.result_type(t0, dt), q0.dtype)
-        check_times_advance(
-            t0_given, dt_given, num_steps, time_dtype, "`omega(t, q)`", _reads_time(omega, q0)
-        )
     # Samples on the integration grid (same dt and t0, known before tracing) are fed to the scan as
     # per-step inputs: reverse mode then costs O(num_steps) instead of a full-size scatter per step.
     aligned = (
