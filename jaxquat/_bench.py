@@ -1777,14 +1777,57 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
+def _settings(argv: list[str] | None) -> tuple[argparse.Namespace, Preset]:
+    """The parsed arguments and the preset they ask for. Raises `_ArgumentError` (or SystemExit, for
+    --help) from the parser and ValueError for the checks that need the parsed values."""
+    args = _parse(argv)
+    changes: dict[str, Any] = {}
+    if args.workloads is not None:
+        workloads = tuple(w.strip().upper() for w in args.workloads.split(","))
+        if "" in workloads:  # `--workloads ""` ran the whole preset
+            raise ValueError(
+                f"--workloads must be a comma-separated list of W1..W5, got {args.workloads!r}"
+            )
+        if len(set(workloads)) < len(workloads):
+            raise ValueError(f"--workloads lists a workload twice: {args.workloads!r}")
+        unknown = [w for w in workloads if w not in ("W1", "W2", "W3", "W4", "W5")]
+        if unknown:
+            raise ValueError(
+                f"--workloads: unknown workload(s) {', '.join(unknown)}; expected W1..W5"
+            )
+        changes["workloads"] = workloads
+    if args.sizes:
+        changes["sizes"] = args.sizes
+        changes["w5_sizes"] = changes["sizes"]
+    if args.dtypes is not None:
+        dtypes = tuple(d.strip() for d in args.dtypes.split(","))
+        if any(d not in ("float64", "float32") for d in dtypes):  # "" included: not ignored
+            raise ValueError(f"--dtypes must be float64 and/or float32; got {args.dtypes!r}")
+        if len(set(dtypes)) < len(dtypes):
+            raise ValueError(f"--dtypes lists a dtype twice: {args.dtypes!r}")
+        changes["dtypes"] = dtypes
+    if args.w5_sizes:
+        changes["w5_sizes"] = args.w5_sizes
+    if args.budget is not None:
+        changes["budget"] = args.budget
+        changes["w2_budget"] = None  # the user's budget holds for W2 too
+    if args.steps is not None:
+        changes["num_steps"] = args.steps
+    if args.repeats is not None:
+        changes["repeats"] = args.repeats
+    if args.output.exists() and not args.output.is_dir():
+        raise ValueError(f"--output {args.output}: exists and is not a directory")
+    return args, dataclasses.replace(PRESETS[args.preset], **changes)
+
+
 def will_run(argv: list[str]) -> bool:
-    """Whether `main(argv)` gets past its argument parser: False for --help or arguments the parser
-    rejects, which `main` prints without JAX's backend (the command line starts the backend only
-    when True)."""
+    """Whether `main(argv)` gets past its argument checks: False for --help or arguments it rejects,
+    which `main` prints without JAX's backend (the command line starts the backend only when True).
+    A directory `--output` that cannot be created is found later, by `main`."""
     try:
         with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
-            _parse(argv)
-    except (_ArgumentError, SystemExit):
+            _settings(argv)
+    except (_ArgumentError, SystemExit, ValueError):
         return False
     return True
 
@@ -1795,54 +1838,15 @@ def main(argv: list[str] | None = None) -> int:
     Returns 0 on success, 1 if a jaxquat contender gave a wrong answer, 2 on bad arguments.
     """
     try:
-        args = _parse(argv)
+        args, preset = _settings(argv)
     except _ArgumentError as e:
         print(f"jaxquat bench: error: {' '.join(str(e).split())}", file=sys.stderr)
         return 2
     except SystemExit as e:  # --help
         return int(e.code or 0) if e.code in (0, None) else 2
-    preset = PRESETS[args.preset]
-    try:
-        changes: dict[str, Any] = {}
-        if args.workloads is not None:
-            workloads = tuple(w.strip().upper() for w in args.workloads.split(","))
-            if "" in workloads:  # `--workloads ""` ran the whole preset
-                raise ValueError(
-                    f"--workloads must be a comma-separated list of W1..W5, got {args.workloads!r}"
-                )
-            if len(set(workloads)) < len(workloads):
-                raise ValueError(f"--workloads lists a workload twice: {args.workloads!r}")
-            unknown = [w for w in workloads if w not in ("W1", "W2", "W3", "W4", "W5")]
-            if unknown:
-                raise ValueError(
-                    f"--workloads: unknown workload(s) {', '.join(unknown)}; expected W1..W5"
-                )
-            changes["workloads"] = workloads
-        if args.sizes:
-            changes["sizes"] = args.sizes
-            changes["w5_sizes"] = changes["sizes"]
-        if args.dtypes is not None:
-            dtypes = tuple(d.strip() for d in args.dtypes.split(","))
-            if any(d not in ("float64", "float32") for d in dtypes):  # "" included: not ignored
-                raise ValueError(f"--dtypes must be float64 and/or float32; got {args.dtypes!r}")
-            if len(set(dtypes)) < len(dtypes):
-                raise ValueError(f"--dtypes lists a dtype twice: {args.dtypes!r}")
-            changes["dtypes"] = dtypes
-        if args.w5_sizes:
-            changes["w5_sizes"] = args.w5_sizes
-        if args.budget is not None:
-            changes["budget"] = args.budget
-            changes["w2_budget"] = None  # the user's budget holds for W2 too
-        if args.steps is not None:
-            changes["num_steps"] = args.steps
-        if args.repeats is not None:
-            changes["repeats"] = args.repeats
-        if args.output.exists() and not args.output.is_dir():
-            raise ValueError(f"--output {args.output}: exists and is not a directory")
     except ValueError as e:
         print(f"jaxquat bench: error: {e}", file=sys.stderr)
         return 2
-    preset = dataclasses.replace(preset, **changes)
 
     import jax
 

@@ -216,6 +216,11 @@ def test_bench_will_run_is_quiet_and_false_for_help_and_bad_arguments(capsys):
     assert _bench.will_run([]) and _bench.will_run(["--workloads", "W1", "--preset", "micro"])
     assert not _bench.will_run(["--help"]) and not _bench.will_run(["--preset", "x"])
     assert not _bench.will_run(["--repeats", "0"])
+    # The checks made after parsing count too (the backend started before their one-line errors).
+    assert not _bench.will_run(["--workloads", "W9"]) and not _bench.will_run(["--workloads", ""])
+    assert not _bench.will_run(["--workloads", "W1,w1"])
+    assert not _bench.will_run(["--dtypes", "float16"])
+    assert not _bench.will_run(["--output", __file__])
     assert capsys.readouterr() == ("", "")
 
 

@@ -1169,6 +1169,17 @@ def test_a_backend_that_cannot_start_is_one_line(tmp_path, platform):
         [*bench, "--preset", "x"], capture_output=True, text=True, env=env, timeout=300
     )
     _assert_one_line_error(2, done.stdout, done.stderr, "argument --preset: invalid choice")
+    # ... nor do the checks made after parsing (they too printed the backend's error).
+    (tmp_path / "a_file").write_text("")
+    for arguments, message in [
+        (["--workloads", "W9"], "unknown workload(s) W9"),
+        (["--dtypes", "float16"], "--dtypes must be float64 and/or float32"),
+        (["--output", str(tmp_path / "a_file")], "exists and is not a directory"),
+    ]:
+        done = subprocess.run(
+            [*bench, *arguments], capture_output=True, text=True, env=env, timeout=300
+        )
+        _assert_one_line_error(2, done.stdout, done.stderr, message)
     output = ["--output", str(tmp_path / "bench")]
     done = subprocess.run([*bench, *output], capture_output=True, text=True, env=env, timeout=300)
     _assert_one_line_error(2, done.stdout, done.stderr, f"JAX_PLATFORMS={platform!r}")
