@@ -772,17 +772,41 @@ def _depends_on_q(omega: Callable, t, q: Array) -> bool:
     return _depends_on(lambda q_: omega(t, q_), q)
 
 
-def _depends_on(fn: Callable, *operands) -> bool:
-    """Whether the output of `fn(*operands)` depends on any leaf of the operands (a conservative
-    data-flow check on its jaxpr)."""
+try:  # JAX's dead-code elimination, which sees into nested jaxprs (jit, cond, scan, checkpoint)
+    from jax._src.interpreters.partial_eval import dce_jaxpr as _dce_jaxpr
+except ImportError:  # pragma: no cover - an internal name; without it, the flat walk below
+    _dce_jaxpr = None
+
+
+def _depends_on(fn: Callable, *operands, argnums: tuple[int, ...] | None = None) -> bool:
+    """Whether the output of `fn(*operands)` depends on any leaf of the operands (or of those at
+    `argnums`): a conservative data-flow check on its jaxpr (operands may be abstract,
+    `jax.ShapeDtypeStruct`s).
+
+    JAX's dead-code elimination decides which inputs the outputs use. It looks inside nested calls,
+    so `jax.jit`, `eqx.filter_jit`, `jax.checkpoint`, `lax.cond` and `lax.scan` bodies that ignore
+    an input do not count as using it; a primitive it has no rule for (`custom_jvp` and the like)
+    counts as using all of its inputs, as does anything with effects (`jax.debug.print`). An input
+    multiplied by zero is used."""
     closed = jax.make_jaxpr(fn)(*operands)
     jaxpr = closed.jaxpr
-    dependent = set(jaxpr.invars)
+    counts = [len(jax.tree.leaves(x)) for x in operands]
+    starts = np.cumsum([0, *counts])
+    chosen = range(len(operands)) if argnums is None else argnums
+    positions = [j for i in chosen for j in range(starts[i], starts[i + 1])]
+    if _dce_jaxpr is not None:
+        try:
+            used = _dce_jaxpr(jaxpr, [True] * len(jaxpr.outvars))[1]
+        except Exception:  # noqa: BLE001 - an internal API: fall back to the flat walk
+            pass
+        else:
+            return any(used[j] for j in positions)
+    dependent = {jaxpr.invars[j] for j in positions}
 
     def is_var(v):
         return isinstance(v, jex_core.Var) and not isinstance(v, jex_core.Literal)
 
-    for eqn in jaxpr.eqns:
+    for eqn in jaxpr.eqns:  # a nested call counts as using all of its inputs
         if any(is_var(v) and v in dependent for v in eqn.invars):
             dependent.update(eqn.outvars)
     return any(is_var(v) and v in dependent for v in jaxpr.outvars)

@@ -838,3 +838,53 @@ def test_steps_past_a_half_turn_dense_output_the_documented_way():
         if speed < 2 * math.pi:
             # Mid-step, the short way round: (θ − 2π)/2 instead of θ/2, a half-turn apart.
             np.testing.assert_allclose(errors[1], np.pi, atol=1e-12)
+
+
+def _wrapped(omega):
+    """`omega(t, q)` wrapped as users wrap functions: jit, an equinox Module under filter_jit,
+    checkpoint, and a lax.cond on t (each a nested jaxpr in the caller's trace)."""
+
+    class Spin(eqx.Module):
+        scale: jax.Array
+
+        def __call__(self, t, q):
+            return self.scale * omega(t, q)
+
+    def branching(t, q):
+        return jax.lax.cond(t < 0.5, omega, lambda t_, q_: 1.0 * omega(t_, q_), t, q)
+
+    return {
+        "jit": jax.jit(omega),
+        "filter_jit Module": eqx.filter_jit(Spin(jnp.array(1.0))),
+        "checkpoint": jax.checkpoint(omega),
+        "cond": branching,
+    }
+
+
+@pytest.mark.parametrize("method", ["magnus4", "magnus6"])
+def test_magnus_accepts_a_wrapped_omega_of_t_and_refuses_a_wrapped_omega_of_q(method):
+    """The q-dependence check read a nested call (jax.jit, eqx.filter_jit, checkpoint, cond) as using
+    all of its inputs: a jitted ω(t), which never reads q, was refused by every Magnus method. It
+    now asks JAX's dead-code elimination, which looks inside; a wrapped ω that does read q is still
+    refused. The accepted runs equal the unwrapped one's."""
+    q0 = jnp.array([1.0, 0.0, 0.0, 0.0])
+    of_t = lambda t, q: jnp.array([jnp.cos(t), jnp.sin(2 * t), 0.5])  # noqa: E731
+    of_q = lambda t, q: jq.rotate(jnp.array([jnp.cos(t), 0.0, 1.0]), q)  # noqa: E731
+    expected = jq.integrate(q0, of_t, 0.05, 20, method=method, save="final")
+    solver = {"magnus4": jq.Magnus4, "magnus6": jq.Magnus6}[method]()
+    for name, omega in _wrapped(of_t).items():
+        got = jq.integrate(q0, omega, 0.05, 20, method=method, save="final")
+        np.testing.assert_allclose(got, expected, atol=1e-14, err_msg=name)
+        ensemble = jq.simulate_ensemble(q0[None], omega, 0.05, 20, method=method).final[0]
+        np.testing.assert_allclose(ensemble, expected, atol=1e-14, err_msg=name)
+        term = diffrax.ODETerm(jq.kinematic_vector_field(omega))
+        sol = diffrax.diffeqsolve(term, solver, 0.0, 1.0, 0.05, q0)
+        np.testing.assert_allclose(sol.ys[-1], expected, atol=1e-12, err_msg=name)
+    for omega in _wrapped(of_q).values():
+        with pytest.raises(ValueError, match="depends on q"):
+            jq.integrate(q0, omega, 0.05, 20, method=method)
+        with pytest.raises(ValueError, match="depends on q"):
+            jq.simulate_ensemble(q0[None], omega, 0.05, 20, method=method)
+        term = diffrax.ODETerm(jq.kinematic_vector_field(omega))
+        with pytest.raises(ValueError, match="depends on q"):
+            diffrax.diffeqsolve(term, solver, 0.0, 1.0, 0.05, q0)
