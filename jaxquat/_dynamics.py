@@ -26,6 +26,8 @@ from ._integrate import (
     LIE_METHODS,
     _check_finite_scalar,
     _check_steps,
+    _reads_time,
+    check_times_advance,
     compensated_lie_step,
     lie_step,
     long_run_options,
@@ -467,6 +469,13 @@ def _long_run_scan(run: _LongRun, field, t0, dt, dtype, carry0, output=lambda ca
     return final[:2], saved
 
 
+def _widen_state(dtype) -> str:
+    """The advice of `check_times_advance` for a run whose times take the state's dtype."""
+    if jnp.dtype(dtype).itemsize >= 8:
+        return ""
+    return " or use a float64 state (jax_enable_x64 and a float64 q0), whose times are float64"
+
+
 def simulate_rigid_body(
     q0: ArrayLike,
     omega0: ArrayLike,
@@ -513,7 +522,9 @@ def simulate_rigid_body(
     - `method`: `"cf4"`, `"midpoint"`, `"euler"`, `"rk4"` or `"naive"` (see `jaxquat.integrate`).
     - `save`: `"all"` (every `save_every`-th state, including the initial one) or `"final"`;
       `save_every` ≥ 1 must divide `num_steps`.
-    - `t0`: the initial time (a scalar, passed to `torque`).
+    - `t0`: the initial time (a scalar, passed to `torque`). Times take q0's dtype: with a torque
+      that reads t, a `ValueError` when its step times t0 + k·dt need not increase (see
+      `jaxquat.integrate`).
     - `compensated`, `renormalize_every`: the long-run mode of `integrate`, for the Lie methods
       (`"cf4"`, `"midpoint"`, `"euler"`): q and ω advanced in Kahan-compensated increments (default:
       on for float32 and float16 states), and q/|q| every `renormalize_every` steps (`None`: never).
@@ -557,8 +568,13 @@ def simulate_rigid_body(
     q0, omega0, _ = broadcast_batch(
         (q0, 1, "q0"), (omega0, 1, "omega0"), (inertia, _inertia_rank(inertia), "inertia")
     )
+    t0_given, dt_given = t0, dt
     dt = _check_finite_scalar(dt, "dt").astype(dtype)
     t0 = _check_finite_scalar(t0, "t0").astype(dtype)
+    if torque is not None:
+        reads, what = _reads_time(torque, q0, omega0), "`torque(t, q, omega)`"
+        widen = _widen_state(dtype)
+        check_times_advance(t0_given, dt_given, num_steps, dtype, what, reads, widen)
 
     compensated, renormalize_every = long_run_options(method, dtype, compensated, renormalize_every)
     run = _LongRun(method, num_steps, save, save_every, compensated, renormalize_every)
@@ -732,7 +748,8 @@ def simulate_deformable_body(
     - `angular_momentum`: the conserved world-frame angular momentum about the centre of mass,
       shape `(3,)`; zero by default.
     - `method`, `save`, `save_every`, `t0`, `compensated`, `renormalize_every`: as for
-      `simulate_rigid_body`.
+      `simulate_rigid_body` (a `ValueError` when `positions` reads t and its step times
+      t0 + k·dt in q0's dtype need not increase).
 
     **Returns:** `(qs, world_positions)`: orientations `(num_saved, 4)` and the inertial-frame positions
     $q (x_i - c) q^{-1}$ `(num_saved, n, 3)` with the centre of mass at the origin (without the time axis
@@ -759,6 +776,7 @@ def simulate_deformable_body(
         raise ValueError(f"`masses` must have shape (n,); got shape {tuple(masses.shape)}.")
     _check_nonempty(masses.shape[0])
     dtype = q0.dtype  # the orientation's dtype governs, as in `integrate`
+    t0_given, dt_given, widen = t0, dt, _widen_state(dtype)
     t0 = _check_finite_scalar(t0, "t0").astype(dtype)
     dt = _check_finite_scalar(dt, "dt").astype(dtype)
     try:  # a nested list is an array too (as in the integration below)
@@ -772,6 +790,8 @@ def simulate_deformable_body(
             f"`positions(t)` must return shape (n, 3) = ({masses.shape[0]}, 3) to match `masses`; "
             f"got shape {shape}."
         )
+    reads = _reads_time(positions)
+    check_times_advance(t0_given, dt_given, num_steps, dtype, "`positions(t)`", reads, widen)
     _check_positive_masses(masses)
     _check_not_collinear(masses, positions, t0)
     masses, q0 = masses.astype(dtype), q0.astype(dtype)

@@ -48,7 +48,9 @@ from ._integrate import (
     _compensated_add,
     _compensated_step,
     _eps_of,
+    _reads_time,
     _rotation_minus_one,
+    check_times_advance,
     lie_step,
     scan_steps,
 )
@@ -1129,7 +1131,8 @@ def simulate_ensemble(
     non-empty directory that is not a jaxquat ensemble, or one whose index.json is unreadable or
     malformed; a run whose `dt` or `t0` is traced) or `devices` (not a non-empty sequence of
     distinct `jax.Device`s); for an `omega(t, q)` of the wrong shape; and, as in `integrate`, for a
-    q-dependent `omega` with a Magnus method.
+    q-dependent `omega` with a Magnus method and for an `omega(t, q)` or `torque` that reads t when
+    its step times t0 + k·dt need not increase (the time dtype's spacing exceeds half a step).
 
     **Example:**
     ```python
@@ -1223,6 +1226,15 @@ def simulate_ensemble(
     padded = -(-num_bodies // num_devices) * num_devices
     # Times in float64 when x64 is on (as `integrate`): t_k = t0 + k·dt with the integer step k.
     time_dtype = jnp.promote_types(jnp.result_type(float), dtype)
+    if torque is not None or (omega_fn is not None and not isinstance(omega_fn, Sampled)):
+        # (samples are looked up by the time since their own t0)
+        q, w = jax.ShapeDtypeStruct((padded, 4), dtype), jax.ShapeDtypeStruct((padded, 3), dtype)
+        if torque is not None:
+            reads, what = _reads_time(torque, q, w), "`torque(t, q, omega)`"
+        else:
+            reads, what = _reads_time(omega_fn, q), "`omega(t, q)`"
+        widen = "" if time_dtype.itemsize >= 8 else " or turn on jax_enable_x64 (float64 times)"
+        check_times_advance(t0, dt, num_steps, time_dtype, what, reads, widen)
 
     def place(x, element_shape, fill):
         x = jnp.broadcast_to(x.astype(dtype), batch + element_shape)

@@ -22,6 +22,7 @@ normalise).
 
 from __future__ import annotations
 
+import fractions
 import functools
 import math
 import operator
@@ -757,6 +758,145 @@ def _check_finite_scalar(x: ArrayLike, name: str) -> Array:
     return checked
 
 
+def _band_spacing(
+    magnitude: fractions.Fraction, eps: fractions.Fraction, tiny
+) -> fractions.Fraction:
+    """The spacing of the floating-point numbers in (2ⁿ⁻¹, 2ⁿ], the binade that holds `magnitude`
+    (a power of two counts with the numbers below it), in a format with machine epsilon `eps` and
+    smallest normal number `tiny` (exact arithmetic)."""
+    if magnitude <= tiny:
+        return tiny * eps  # subnormal numbers: evenly spaced
+    e = magnitude.numerator.bit_length() - magnitude.denominator.bit_length()
+    while fractions.Fraction(2) ** e < magnitude:
+        e += 1
+    while fractions.Fraction(2) ** (e - 1) >= magnitude:
+        e -= 1
+    return fractions.Fraction(2) ** (e - 1) * eps
+
+
+def check_times_advance(
+    t0,
+    dt,
+    num_steps: int,
+    dtype,
+    what: str,
+    reads_time: Callable[[jax.ShapeDtypeStruct], bool],
+    widen: str,
+) -> None:
+    """A `ValueError` when the step times t0 + k·dt (k = 0..num_steps), formed in `dtype`, need not
+    increase and the callable `what` reads them. Far from zero a float's spacing exceeds half a
+    step, and rounding then makes consecutive times equal (they stand still, then jump by two
+    steps): float32 times at a Unix time t0 = 1.7e9 are 128 s apart; at t0 = 1e20 even float64
+    never moves. `widen` is the advice on a wider time dtype, if any.
+
+    Checked only when `t0` and `dt` are concrete (as given: a Python number under `jit` is), `dt`
+    ≠ 0 and `num_steps` > 0, with `t0` and `dt` rounded to `dtype` (as the run uses them) and in
+    exact arithmetic: the times are t0 + float(k)·dt, so the run's largest magnitude M is that of
+    t0, of its end and of num_steps·dt (a run crossing zero). The times increase when the spacing
+    of `dtype` at M is at most |dt|/2 (two roundings, each at most half a spacing, cannot undo a
+    step), or at most |dt| when the times are exact (|dt| a power of two and t0 a multiple of it).
+    Otherwise, and when a time overflows `dtype`, `reads_time(t)`, given the abstract time, is
+    asked whether the callable's output depends on t (`_depends_on`, which sees into jit, cond and
+    checkpoint): a damping torque −c·ω or an ω(q) never sees the time and is not rejected. Stage
+    times t + c·dt inside a step round to the same spacing and are not checked separately."""
+    if num_steps == 0:
+        return
+    try:
+        t0_value, dt_value = float(t0), float(dt)
+    except TypeError:  # traced (jax.errors.ConcretizationTypeError is a TypeError): not checked
+        return
+    if not (math.isfinite(t0_value) and math.isfinite(dt_value)):
+        return  # (the callers' own checks name a non-finite t0 or dt)
+    dtype = jnp.dtype(dtype)
+    info = jnp.finfo(dtype)  # (np.finfo knows no bfloat16)
+    with np.errstate(over="ignore", under="ignore"):
+        t0_run, dt_run = (float(np.asarray(x, dtype)) for x in (t0_value, dt_value))  # as run
+    if dt_run == 0.0:
+        return
+    largest = float(info.max)
+    # A quick pass in float64 for the usual run, far inside the limit (a factor 8 of margin).
+    far = abs(t0_run) + num_steps * abs(dt_run)
+    if math.isfinite(far) and far * 8.0 * float(info.eps) <= abs(dt_run) and far < largest / 8:
+        return
+
+    def reads() -> bool:
+        try:
+            return bool(reads_time(jax.ShapeDtypeStruct((), dtype)))
+        except Exception:  # noqa: BLE001 - the run itself reports a callable that cannot be traced
+            return False
+
+    def shown(name: str, given: float, run: float) -> str:
+        rounded = f" ({run:.8g} in {dtype})" if run != given and math.isfinite(run) else ""
+        return f"`{name}` = {given:g}{rounded}"
+
+    problem = (
+        f"so the step times t0 + k·dt at which {what} is called cannot all be told apart (they "
+        "would stand still, then jump)"
+    )
+    for name, given, run in [("t0", t0_value, t0_run), ("dt", dt_value, dt_run)]:
+        if not math.isfinite(run):
+            if reads():
+                raise ValueError(
+                    f"`{name}` = {given:g} overflows {dtype} (largest {largest:g}), so {what} "
+                    f"would be called at infinite times{widen}."
+                )
+            return
+    Fraction = fractions.Fraction
+    t0_exact, dt_exact, n = Fraction(t0_run), Fraction(dt_run), num_steps
+    end = t0_exact + n * dt_exact
+    step = abs(dt_exact)
+    magnitude = max(abs(t0_exact), abs(end), n * step)
+    eps, tiny = Fraction(float(info.eps)), Fraction(float(info.smallest_normal))
+    power_of_two = step.numerator.bit_count() == 1 and step.denominator.bit_count() == 1
+    exact_grid = power_of_two and (t0_exact / step).denominator == 1
+
+    def fine(m: Fraction) -> bool:
+        spacing = _band_spacing(m, eps, tiny)
+        return 2 * spacing <= step or (exact_grid and spacing <= step)
+
+    if magnitude <= Fraction(largest) and fine(magnitude):
+        return
+    if not reads():
+        return
+    run = f"{shown('t0', t0_value, t0_run)}, {shown('dt', dt_value, dt_run)}"
+    if magnitude > Fraction(largest):
+        raise ValueError(
+            f"{run} and `num_steps` = {n:,} reach |t| = {float(magnitude):.6g}, beyond the largest "
+            f"{dtype} ({largest:g}), so {what} would be called at infinite times. Split the run "
+            f"into shorter runs, each counting time from its own start (with {what} shifted to "
+            f"match){widen}."
+        )
+    first = max(abs(t0_exact), abs(t0_exact + dt_exact))
+    if not fine(first):  # the origin is to blame: not even the first step is told apart
+        spacing = float(_band_spacing(first, eps, tiny))
+        raise ValueError(
+            f"{run}: {dtype} times near |t0| are {spacing:.3g} apart, more than half a step, "
+            f"{problem}. Count time from a nearer origin (a smaller |t0|, with {what} shifted to "
+            f"match){widen}."
+        )
+    spacing = float(_band_spacing(magnitude, eps, tiny))
+    raise ValueError(  # the run's length is to blame
+        f"{run} and `num_steps` = {n:,} reach |t| = {float(magnitude):.10g} (counting the "
+        f"steps' span n·|dt|), where {dtype} times are {spacing:.3g} apart, more than half a "
+        f"step, {problem}. Split the run into shorter runs, each counting time from its own start "
+        f"(with {what} shifted to match){widen}."
+    )
+
+
+def _reads_time(fn: Callable, *others) -> Callable[[jax.ShapeDtypeStruct], bool]:
+    """For `check_times_advance`: whether `fn(t, *others)` depends on t (`others` taken abstract,
+    with their shapes and dtypes; a list or number returned counts as an array)."""
+
+    def call(t, *rest):
+        return jax.tree.map(jnp.asarray, fn(t, *rest))
+
+    def reads(t) -> bool:  # (the abstract operands formed only when asked: the usual run is not)
+        abstract = [jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)) for x in others]
+        return _depends_on(call, t, *abstract, argnums=(0,))
+
+    return reads
+
+
 def _check_magnus_omega(omega: Callable, method: str, t, q: Array) -> None:
     """A `ValueError` for a Magnus `method` with an `omega(t, q)` that depends on q (`integrate` and
     `simulate_ensemble`)."""
@@ -925,8 +1065,13 @@ def integrate(
 
     **Errors:** a `ValueError` naming the argument for a bad `method`, `frame`, `save`, `save_every`,
     `num_steps`, `unroll` or `renormalize_every` (static ints; a bool is not accepted), a non-bool
-    `checkpoint` / `compensated`, a non-scalar `dt`/`t0`, an `omega` of the wrong shape, or a
-    q-dependent `omega` with a Magnus method.
+    `checkpoint` / `compensated`, a non-scalar `dt`/`t0`, an `omega` of the wrong shape, a
+    q-dependent `omega` with a Magnus method, or an `omega(t, q)` that reads t when its step times
+    t0 + k·dt need not increase: far from zero the time dtype's spacing exceeds half a step (float32
+    times at a Unix time such as t0 = 1.7e9 are 128 s apart; the message says whether t0 or the
+    run's length is to blame). Checked when t0 and dt are concrete; an `omega` whose output does
+    not depend on t (a data-flow check that sees into `jax.jit`, `lax.cond` and the like) is never
+    rejected.
 
     Example:
     ```python
@@ -949,6 +1094,18 @@ def integrate(
     t0 = _check_finite_scalar(t0, "t0")
     if not callable(omega):
         omega = check_trailing(omega, 3, "omega")
+    elif not isinstance(omega, Sampled):  # (samples are looked up by the time since their t0)
+        # (A callable that cannot be traced, of the wrong arity say, is named by the run itself.)
+        time_dtype = jnp.promote_types(jnp.result_type(t0, dt), q0.dtype)
+        widen = (
+            " or count time in float64 (jax_enable_x64, with t0 and dt Python numbers or float64)"
+            if time_dtype.itemsize < 8
+            else ""
+        )
+        reads = _reads_time(omega, q0)
+        check_times_advance(
+            t0_given, dt_given, num_steps, time_dtype, "`omega(t, q)`", reads, widen
+        )
     # Samples on the integration grid (same dt and t0, known before tracing) are fed to the scan as
     # per-step inputs: reverse mode then costs O(num_steps) instead of a full-size scatter per step.
     aligned = (

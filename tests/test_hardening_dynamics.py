@@ -432,3 +432,218 @@ def test_deformable_body_positions_may_return_a_nested_list():
         ValueError, match=r"`positions\(t\)` must return an array of shape \(n, 3\)"
     ):
         jq.simulate_deformable_body(*args, lambda t: "abc", jnp.array([1.0, 0, 0, 0]), 0.1, 5)
+
+
+# --------------------------------------------------------------------------------------------------
+# Step times that the time dtype cannot tell apart
+
+
+def _time_callables():
+    """The four entry points that call a function of time, each as run(q0, t0, dt, shift) with the
+    function of time written in the time τ = t − shift; one-stage methods, whose only times are the
+    step times (a stage at t + c·dt is rounded to the spacing too)."""
+
+    def omega(shift):
+        return lambda t, q: jnp.stack([0.5 + 0.01 * (t - shift), 0.2 + 0 * t, 0 * t]).astype(
+            q.dtype
+        )
+
+    def torque(shift):
+        return lambda t, q, w: jnp.stack([0.1 * (t - shift), 0 * t, 0 * t]).astype(q.dtype)
+
+    def positions(shift):
+        return lambda t: jnp.diag(jnp.stack([1.0 + 0.01 * (t - shift), 1.5 + 0 * t, 2.0 + 0 * t]))
+
+    return {
+        "integrate": lambda q0, t0, dt, s: jq.integrate(q0, omega(s), dt, 4, t0=t0, save="final"),
+        "simulate_rigid_body": lambda q0, t0, dt, s: jq.simulate_rigid_body(
+            q0,
+            OMEGA.astype(q0.dtype),
+            MOMENTS.astype(q0.dtype),
+            dt,
+            4,
+            torque=torque(s),
+            t0=t0,
+            method="euler",
+        )[0][-1],
+        "simulate_deformable_body": lambda q0, t0, dt, s: jq.simulate_deformable_body(
+            jnp.ones(3, q0.dtype), positions(s), q0, dt, 4, t0=t0, method="euler"
+        )[-1],
+        "simulate_ensemble": lambda q0, t0, dt, s: jq.simulate_ensemble(
+            q0[None], omega(s), dt=dt, num_steps=4, t0=t0
+        ).final[0],
+    }
+
+
+@pytest.mark.parametrize("name", list(_time_callables()))
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_step_times_the_dtype_cannot_tell_apart_are_an_error(name, dtype):
+    """t0 + k·dt in the run's time dtype: where its spacing exceeds half a step, consecutive step
+    times can coincide and the function of time stands still (float32 at a Unix time, 1.7e9, is
+    128 s apart; at 1e20 even float64 never moves). Those are a `ValueError`, blaming the origin or
+    the run's length; at the boundary (spacing = dt with every step time exact, also a run ending
+    exactly on 2ⁿ where the spacing doubles) the run equals the same run counted from t0 = 0, bit
+    for bit."""
+    run = _time_callables()[name]
+    q0 = Q0.astype(dtype)
+    # simulate_ensemble forms its times in float64 when x64 is on (this suite): float64 cases only.
+    time_dtype = "float64" if name == "simulate_ensemble" else dtype
+    exponent = np.finfo(time_dtype).nmant + 1  # spacing above 2**exponent is 2: more than dt = 1
+    t0, dt = np.asarray(2.0**exponent, time_dtype), np.asarray(1.0, time_dtype)
+    with pytest.raises(ValueError, match=rf"`t0` = .* {time_dtype} times near \|t0\| are 2 apart"):
+        run(q0, t0, dt, t0)
+    with pytest.raises(ValueError, match="smaller .t0."):
+        jax.jit(lambda: run(q0, 1e20, 0.01, 0.0))()
+    zero = np.zeros_like(t0)
+    for t0 in (2.0 ** (exponent - 1), 2.0**exponent - 4):  # spacing 1 = dt: every time exact
+        t0 = np.asarray(t0, time_dtype)
+        np.testing.assert_array_equal(run(q0, t0, dt, t0), run(q0, zero, dt, 0.0))
+    # Four steps from 2**exponent − 3 end at 2**exponent + 1, past the boundary: the run's length
+    # is to blame, not its origin.
+    with pytest.raises(ValueError, match=r"reach \|t\| = .* Split the run into shorter runs"):
+        t0 = np.asarray(2.0**exponent - 3, time_dtype)
+        run(q0, t0, dt, t0)
+    run(q0, 0.0, 0.0, 0.0)  # dt = 0: time stands still by request
+
+
+def test_step_times_matter_only_for_functions_of_time():
+    """A constant ω or samples (looked up by the time since their own t0) never see t0 + k·dt, nor
+    does a callable whose output does not depend on t (a damping torque, an ω(q), positions that
+    do not change), wrapped in jax.jit, eqx.filter_jit, checkpoint or cond or not, in any float
+    dtype (bfloat16 included), and `num_steps = 0` has no step times to tell apart."""
+    import equinox as eqx
+
+    final = jq.integrate(Q0, OMEGA, 0.01, 5, t0=1e20, save="final")
+    np.testing.assert_allclose(final, jq.integrate(Q0, OMEGA, 0.01, 5, save="final"), atol=0)
+    samples = jq.sampled(jnp.tile(OMEGA, (5, 1)), 0.01, t0=1e20)
+    final = jq.integrate(Q0, samples, 0.01, 5, t0=1e20, save="final")
+    np.testing.assert_allclose(final, jq.integrate(Q0, OMEGA, 0.01, 5, save="final"), atol=0)
+
+    def omega_of_q(t, q):  # reads t only for its dtype and shape
+        return jnp.zeros_like(t) + 0.5 * q[..., 1:]
+
+    args = (Q0, omega_of_q, 0.01, 5)
+    np.testing.assert_array_equal(
+        jq.integrate(*args, t0=1e20, method="rk4"), jq.integrate(*args, method="rk4")
+    )
+    ensemble = jq.simulate_ensemble(Q0[None], omega_of_q, dt=0.01, num_steps=5, t0=1e20)
+    np.testing.assert_array_equal(ensemble.final[0], jq.integrate(*args, save="final"))
+
+    class Damping(eqx.Module):  # a torque as a Module, as a neural network would be
+        c: jax.Array
+
+        def __call__(self, t, q, w):
+            return -self.c * w
+
+    def damping(t, q, w):
+        return -0.1 * w
+
+    def branching(t, q, w):
+        return jax.lax.cond(jnp.all(w > 0), damping, lambda *a: 2 * damping(*a), t, q, w)
+
+    torques = {
+        "plain": damping,
+        "jit": jax.jit(damping),
+        "filter_jit Module": eqx.filter_jit(Damping(jnp.array(0.1))),
+        "checkpoint": jax.checkpoint(damping),
+        "cond": branching,
+    }
+    # float16 times past 32 are 0.03 apart, more than dt = 0.01 (bfloat16 past 2: 0.016): harmless
+    # for a torque that does not read t. (A float16 rigid body with a jitted damping torque over
+    # 3,000 steps is what a first version of this check refused.)
+    for dtype in (jnp.float16, jnp.bfloat16):
+        q, w, i = (x.astype(dtype) for x in (Q0, OMEGA, MOMENTS))
+        for name, torque in torques.items():
+            qs, _ = jq.simulate_rigid_body(q, w, i, 0.01, 3_000, torque=torque, save="final")
+            assert qs.dtype == dtype and bool(jnp.isfinite(qs.astype(float)).all()), name
+            jq.simulate_rigid_body(q, w, i, 0.01, 4, torque=torque, t0=40.0)
+    for name, torque in torques.items():
+        ensemble = jq.simulate_ensemble(
+            Q0[None], OMEGA, dt=0.01, num_steps=5, t0=1e20, inertia=MOMENTS, torque=torque
+        )
+        expected = jq.simulate_rigid_body(Q0, OMEGA, MOMENTS, 0.01, 5, torque=torque, save="final")
+        np.testing.assert_allclose(ensemble.final[0], expected[0], atol=1e-15, err_msg=name)
+
+    still = jnp.diag(jnp.array([1.0, 1.5, 2.0]))
+    for positions in (lambda t: still, jax.jit(lambda t: still)):
+        qs, _ = jq.simulate_deformable_body(
+            jnp.ones(3), positions, Q0, 0.01, 5, t0=1e20, angular_momentum=jnp.array([0, 0, 1.0])
+        )
+        expected, _ = jq.simulate_deformable_body(
+            jnp.ones(3), positions, Q0, 0.01, 5, angular_momentum=jnp.array([0, 0, 1.0])
+        )
+        np.testing.assert_array_equal(qs, expected)
+
+    def omega_of_t(t, q):
+        return jnp.stack([0.5 + 0.01 * t, 0.2 + 0 * t, 0 * t])
+
+    final = jq.integrate(Q0, omega_of_t, 0.01, 0, t0=1e20, save="final")  # no steps: q0
+    np.testing.assert_array_equal(final, Q0)
+    # A callable of the wrong arity is named as such, not tripped over by the time check.
+    with pytest.raises(ValueError, match=r"`omega` must be callable as omega\(t, q\)"):
+        jq.integrate(Q0, lambda t: OMEGA, 0.01, 5, t0=1e20)
+
+
+def _step_times(t0, dt, num_steps, dtype):
+    """The step times t0 + float(k)·dt as the runs form them, each operation rounded to `dtype`
+    (NumPy computes float16 and bfloat16 in float32 and rounds once more, which is exact for a sum
+    or a product of two such numbers)."""
+    dtype = jnp.dtype(dtype)
+    k = np.arange(num_steps + 1).astype(dtype)
+    return np.asarray(t0, dtype) + k * np.asarray(dt, dtype)
+
+
+@pytest.mark.parametrize("dtype", ["float16", "bfloat16", "float32"])
+def test_step_times_the_check_accepts_increase(dtype):
+    """Against the arithmetic itself: for runs around the boundary (the spacing of the run's largest
+    |t| from a quarter to four steps; origins on and off the grid of the step; runs crossing zero),
+    every run the check accepts has strictly increasing step times as the dtype forms them. Of the
+    runs it refuses, over a quarter do have two equal times (the rest step unevenly, by one
+    spacing or two: their spacing exceeds half a step), among them a step
+    of exactly the spacing from an origin half a spacing off its grid (ties round to even)."""
+    from jaxquat._integrate import check_times_advance
+
+    rng = np.random.default_rng(5)
+    eps = float(jnp.finfo(dtype).eps)
+    accepted = refused = stalled = 0
+    for _ in range(400):
+        dt = float(np.asarray(2.0 ** rng.uniform(-8, 2) * rng.choice([1, -1]), dtype))
+        scale = abs(dt) / eps * 2.0 ** rng.uniform(-2, 2)  # where the spacing is dt/4 .. 4 dt
+        t0 = float(rng.uniform(-1, 1) * scale)
+        num_steps = int(rng.integers(1, min(4000, 2 * scale / abs(dt)) + 2))
+        if rng.random() < 0.3:
+            t0 = round(t0 / dt) * dt + (dt / 2 if rng.random() < 0.5 else 0.0)
+        t0 = float(np.asarray(t0, dtype))
+        times = _step_times(t0, dt, num_steps, dtype).astype(np.float64)
+        if not np.all(np.isfinite(times)):
+            continue
+        increasing = bool(np.all(np.diff(times) * np.sign(dt) > 0))
+        try:
+            check_times_advance(t0, dt, num_steps, dtype, "`f(t)`", lambda t: True, "")
+        except ValueError:
+            refused += 1
+            stalled += not increasing
+        else:
+            accepted += 1
+            assert increasing, (t0, dt, num_steps)
+    assert accepted > 60 and refused > 60 and stalled > refused / 4, (accepted, refused, stalled)
+    # The tie: a step equal to the spacing, from an origin half a step off the grid.
+    times = _step_times(0.5, 1.0, 2 ** (jnp.finfo(dtype).nmant + 1) + 3, dtype)
+    assert np.any(np.diff(times.astype(np.float64)) == 0)
+    with pytest.raises(ValueError, match="Split the run"):
+        check_times_advance(0.5, 1.0, times.size - 1, dtype, "`f(t)`", lambda t: True, "")
+    check_times_advance(0.0, 1.0, times.size - 4, dtype, "`f(t)`", lambda t: True, "")  # exact
+
+
+def test_step_times_that_overflow_are_named():
+    """A float16 t0 of 1e6 is infinite in the run's dtype, and so is a run from 0 reaching 1e5:
+    both named, with a function of time; the advice for a float32 state names float64."""
+    torque = lambda t, q, w: jnp.stack([t, 0 * t, 0 * t]).astype(q.dtype)  # noqa: E731
+    q, w, i = (x.astype(jnp.float16) for x in (Q0, OMEGA, MOMENTS))
+    with pytest.raises(ValueError, match=r"`t0` = 1e\+06 overflows float16 \(largest 65504\)"):
+        jq.simulate_rigid_body(q, w, i, 0.01, 4, torque=torque, t0=1e6)
+    with pytest.raises(ValueError, match=r"reach \|t\| = 100000, beyond the largest float16"):
+        jq.simulate_rigid_body(q, w, i, 1000.0, 100, torque=torque)
+    q, w, i = (x.astype(jnp.float32) for x in (Q0, OMEGA, MOMENTS))
+    with pytest.raises(ValueError, match=r"1\.7e\+09.* 128 apart.* or use a float64 state"):
+        jq.simulate_rigid_body(q, w, i, 0.01, 4, torque=torque, t0=1.7e9)
