@@ -574,7 +574,7 @@ def simulate_rigid_body(
     if torque is not None:
         reads, what = _reads_time(torque, q0, omega0), "`torque(t, q, omega)`"
         widen = _widen_state(dtype)
-        check_times_advance(t0_given, dt_given, num_steps, dtype, what, reads, widen)
+        check_times_advance(t0_given, dt_given, num_steps, dtype, what, reads, widen, method)
 
     compensated, renormalize_every = long_run_options(method, dtype, compensated, renormalize_every)
     run = _LongRun(method, num_steps, save, save_every, compensated, renormalize_every)
@@ -791,7 +791,9 @@ def simulate_deformable_body(
             f"got shape {shape}."
         )
     reads = _reads_time(positions)
-    check_times_advance(t0_given, dt_given, num_steps, dtype, "`positions(t)`", reads, widen)
+    check_times_advance(
+        t0_given, dt_given, num_steps, dtype, "`positions(t)`", reads, widen, method
+    )
     _check_positive_masses(masses)
     _check_not_collinear(masses, positions, t0)
     masses, q0 = masses.astype(dtype), q0.astype(dtype)

@@ -1234,7 +1234,7 @@ def simulate_ensemble(
         else:
             reads, what = _reads_time(omega_fn, q), "`omega(t, q)`"
         widen = "" if time_dtype.itemsize >= 8 else " or turn on jax_enable_x64 (float64 times)"
-        check_times_advance(t0, dt, num_steps, time_dtype, what, reads, widen)
+        check_times_advance(t0, dt, num_steps, time_dtype, what, reads, widen, method)
 
     def place(x, element_shape, fill):
         x = jnp.broadcast_to(x.astype(dtype), batch + element_shape)

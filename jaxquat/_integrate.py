@@ -782,23 +782,32 @@ def check_times_advance(
     what: str,
     reads_time: Callable[[jax.ShapeDtypeStruct], bool],
     widen: str,
+    method: str,
 ) -> None:
-    """A `ValueError` when the step times t0 + k·dt (k = 0..num_steps), formed in `dtype`, need not
+    """A `ValueError` when the times t0 + k·dt (k = 0..num_steps), formed in `dtype`, need not
     increase and the callable `what` reads them. Far from zero a float's spacing exceeds half a
     step, and rounding then makes consecutive times equal (they stand still, then jump by two
     steps): float32 times at a Unix time t0 = 1.7e9 are 128 s apart; at t0 = 1e20 even float64
-    never moves. `widen` is the advice on a wider time dtype, if any.
+    never moves. `widen` is the advice on a wider time dtype, if any; `method` the integrator's,
+    whose stage times are `_STAGE_FRACTIONS[method]`.
 
     Checked only when `t0` and `dt` are concrete (as given: a Python number under `jit` is), `dt`
     ≠ 0 and `num_steps` > 0, with `t0` and `dt` rounded to `dtype` (as the run uses them) and in
     exact arithmetic: the times are t0 + float(k)·dt, so the run's largest magnitude M is that of
-    t0, of its end and of num_steps·dt (a run crossing zero). The times increase when the spacing
-    of `dtype` at M is at most |dt|/2 (two roundings, each at most half a spacing, cannot undo a
-    step), or at most |dt| when the times are exact (|dt| a power of two and t0 a multiple of it).
-    Otherwise, and when a time overflows `dtype`, `reads_time(t)`, given the abstract time, is
-    asked whether the callable's output depends on t (`_depends_on`, which sees into jit, cond and
-    checkpoint): a damping torque −c·ω or an ω(q) never sees the time and is not rejected. Stage
-    times t + c·dt inside a step round to the same spacing and are not checked separately."""
+    t0, of its end and of num_steps·dt (a run crossing zero). With the spacing S of `dtype` at M,
+    the step times increase when S ≤ |dt|/2 (two roundings, each at most half a spacing, cannot
+    undo a step), when S ≤ |dt| and every time is exact (|dt| a power of two, t0 a multiple of
+    it), and when S < |dt| from t0 = 0 (one rounding of k·dt). A method with stages inside the
+    step (c = ½ for midpoint, rk4 and cf4) needs its half steps told apart from the step ends too:
+    t_k + ½dt = fl(t_k + fl(½dt)) is a third rounding, so there S < |dt|/5 (the bound that keeps
+    t_{k+1} above it), S ≤ |dt|/4 for a power-of-two |dt| (k·dt exact), S ≤ |dt|/2 with exact
+    times, or S < |dt|/3 from t0 = 0 (measured: half steps collapsed at |dt|/S up to 3.96 in
+    float16 and bfloat16, e.g. float16 t0 = −13.2, dt = 0.0585). Gauss points (Magnus,
+    c = ½ ∓ 0.29) still move by up to S/2 near M: those
+    runs are accepted, at lower accuracy. Otherwise, and when a time overflows `dtype`,
+    `reads_time(t)`, given the abstract time, is asked whether the callable's output depends on t
+    (`_depends_on`, which sees into jit, cond, loops and custom derivatives): a damping torque
+    −c·ω or an ω(q) never sees the time and is not rejected."""
     if num_steps == 0:
         return
     try:
@@ -830,15 +839,15 @@ def check_times_advance(
         return f"`{name}` = {given:g}{rounded}"
 
     problem = (
-        f"so the step times t0 + k·dt at which {what} is called cannot all be told apart (they "
-        "would stand still, then jump)"
+        f"so the times t0 + k·dt at which {what} is called cannot all be told apart (they would "
+        "stand still, then jump)"
     )
     for name, given, run in [("t0", t0_value, t0_run), ("dt", dt_value, dt_run)]:
         if not math.isfinite(run):
             if reads():
                 raise ValueError(
                     f"`{name}` = {given:g} overflows {dtype} (largest {largest:g}), so {what} "
-                    f"would be called at infinite times{widen}."
+                    f"would be called at infinite times. Use a smaller |{name}|{widen}."
                 )
             return
     Fraction = fractions.Fraction
@@ -849,16 +858,30 @@ def check_times_advance(
     eps, tiny = Fraction(float(info.eps)), Fraction(float(info.smallest_normal))
     power_of_two = step.numerator.bit_count() == 1 and step.denominator.bit_count() == 1
     exact_grid = power_of_two and (t0_exact / step).denominator == 1
+    inside = any(0.0 < c < 1.0 for c in _STAGE_FRACTIONS[method])  # stages inside the step
 
     def fine(m: Fraction) -> bool:
         spacing = _band_spacing(m, eps, tiny)
-        return 2 * spacing <= step or (exact_grid and spacing <= step)
+        if inside:  # (the step times and the half steps between them)
+            return (
+                5 * spacing < step
+                or (power_of_two and 4 * spacing <= step)
+                or (exact_grid and 2 * spacing <= step)
+                or (t0_exact == 0 and 3 * spacing < step)
+            )
+        return (
+            2 * spacing <= step
+            or (exact_grid and spacing <= step)
+            or (t0_exact == 0 and spacing < step)
+        )
 
     if magnitude <= Fraction(largest) and fine(magnitude):
         return
     if not reads():
         return
     run = f"{shown('t0', t0_value, t0_run)}, {shown('dt', dt_value, dt_run)}"
+    rule = f" (method {method!r} evaluates at half steps too, which need a finer spacing)"
+    rule = rule if inside else ""
     if magnitude > Fraction(largest):
         raise ValueError(
             f"{run} and `num_steps` = {n:,} reach |t| = {float(magnitude):.6g}, beyond the largest "
@@ -870,15 +893,15 @@ def check_times_advance(
     if not fine(first):  # the origin is to blame: not even the first step is told apart
         spacing = float(_band_spacing(first, eps, tiny))
         raise ValueError(
-            f"{run}: {dtype} times near |t0| are {spacing:.3g} apart, more than half a step, "
-            f"{problem}. Count time from a nearer origin (a smaller |t0|, with {what} shifted to "
+            f"{run}: {dtype} times near |t0| are {spacing:.3g} apart, too coarse for steps of "
+            f"{dt_run:g}{rule}, {problem}. Count time from a nearer origin (a smaller |t0|, with {what} shifted to "
             f"match){widen}."
         )
     spacing = float(_band_spacing(magnitude, eps, tiny))
     raise ValueError(  # the run's length is to blame
         f"{run} and `num_steps` = {n:,} reach |t| = {float(magnitude):.10g} (counting the "
-        f"steps' span n·|dt|), where {dtype} times are {spacing:.3g} apart, more than half a "
-        f"step, {problem}. Split the run into shorter runs, each counting time from its own start "
+        f"steps' span n·|dt|), where {dtype} times are {spacing:.3g} apart, too coarse for "
+        f"steps of {dt_run:g}{rule}, {problem}. Split the run into shorter runs, each counting time from its own start "
         f"(with {what} shifted to match){widen}."
     )
 
@@ -912,44 +935,104 @@ def _depends_on_q(omega: Callable, t, q: Array) -> bool:
     return _depends_on(lambda q_: omega(t, q_), q)
 
 
-try:  # JAX's dead-code elimination, which sees into nested jaxprs (jit, cond, scan, checkpoint)
-    from jax._src.interpreters.partial_eval import dce_jaxpr as _dce_jaxpr
-except ImportError:  # pragma: no cover - an internal name; without it, the flat walk below
-    _dce_jaxpr = None
-
-
 def _depends_on(fn: Callable, *operands, argnums: tuple[int, ...] | None = None) -> bool:
     """Whether the output of `fn(*operands)` depends on any leaf of the operands (or of those at
     `argnums`): a conservative data-flow check on its jaxpr (operands may be abstract,
-    `jax.ShapeDtypeStruct`s).
+    `jax.ShapeDtypeStruct`s; `_forward_dependence`).
 
-    JAX's dead-code elimination decides which inputs the outputs use. It looks inside nested calls,
-    so `jax.jit`, `eqx.filter_jit`, `jax.checkpoint`, `lax.cond` and `lax.scan` bodies that ignore
-    an input do not count as using it; a primitive it has no rule for (`custom_jvp` and the like)
-    counts as using all of its inputs, as does anything with effects (`jax.debug.print`). An input
-    multiplied by zero is used."""
-    closed = jax.make_jaxpr(fn)(*operands)
-    jaxpr = closed.jaxpr
+    It looks inside nested calls: `jax.jit`, `eqx.filter_jit`, `jax.checkpoint`, `custom_jvp` and
+    `custom_vjp` functions (their primal), `lax.cond`/`switch` branches and `lax.scan`/`while_loop`
+    bodies that ignore an input do not count as using it. A primitive it does not know counts as
+    using all of its inputs (a `pure_callback`, say), and one fed a used input marks the references
+    it is given (`jax.new_ref`) as used too. An input multiplied by zero is used; one only printed
+    (`jax.debug.print`) is not, as the output does not see it."""
+    jaxpr = jax.make_jaxpr(fn)(*operands).jaxpr
     counts = [len(jax.tree.leaves(x)) for x in operands]
-    starts = np.cumsum([0, *counts])
-    chosen = range(len(operands)) if argnums is None else argnums
-    positions = [j for i in chosen for j in range(starts[i], starts[i + 1])]
-    if _dce_jaxpr is not None:
-        try:
-            used = _dce_jaxpr(jaxpr, [True] * len(jaxpr.outvars))[1]
-        except Exception:  # noqa: BLE001 - an internal API: fall back to the flat walk
-            pass
+    chosen = set(range(len(operands)) if argnums is None else argnums)
+    flags = [i in chosen for i, count in enumerate(counts) for _ in range(count)]
+    return any(_forward_dependence(jaxpr, flags))
+
+
+def _is_var(v) -> bool:
+    return isinstance(v, jex_core.Var) and not isinstance(v, jex_core.Literal)
+
+
+def _is_ref(v) -> bool:
+    return type(getattr(v, "aval", None)).__name__ == "AbstractRef"
+
+
+def _forward_dependence(jaxpr, dependent_inputs: list[bool]) -> list[bool]:
+    """Which outputs of `jaxpr` depend on the inputs flagged (forward data flow, equation by
+    equation; nested jaxprs by `_equation_dependence`)."""
+    dependent = {v for v, flag in zip(jaxpr.invars, dependent_inputs, strict=True) if flag}
+    for eqn in jaxpr.eqns:
+        inputs = [_is_var(v) and v in dependent for v in eqn.invars]
+        if not any(inputs):
+            continue
+        outputs = _equation_dependence(eqn, inputs)
+        dependent.update(v for v, flag in zip(eqn.outvars, outputs, strict=True) if flag)
+        dependent.update(v for v in eqn.invars if _is_var(v) and _is_ref(v))  # written, maybe
+    return [_is_var(v) and v in dependent for v in jaxpr.outvars]
+
+
+def _equation_dependence(eqn, inputs: list[bool]) -> list[bool]:
+    """Which outputs of one equation depend on its inputs flagged: through the nested jaxpr of a
+    call, a cond, a scan or a while loop (to a fixed point over the loop's carry); every output for
+    any other primitive, for references among the operands, and whenever the structure is not the
+    expected one (a JAX version that changed a primitive's parameters stays conservative)."""
+    everything = [True] * len(eqn.outvars)
+    params = eqn.params
+    if any(_is_ref(v) for v in eqn.invars):
+        return everything
+
+    def run(jaxpr, flags):
+        jaxpr = getattr(jaxpr, "jaxpr", jaxpr)  # (a ClosedJaxpr or a Jaxpr)
+        if len(jaxpr.invars) != len(flags):
+            raise ValueError("unexpected structure")
+        return _forward_dependence(jaxpr, flags)
+
+    try:
+        name = eqn.primitive.name
+        if name == "cond":
+            if inputs[0]:  # the branch index
+                return everything
+            outputs = [False] * len(eqn.outvars)
+            for branch in params["branches"]:
+                outputs = [a or b for a, b in zip(outputs, run(branch, inputs[1:]), strict=True)]
+        elif name == "scan":
+            consts, carries = params["num_consts"], params["num_carry"]
+            carry = inputs[consts : consts + carries]
+            while True:
+                outputs = run(params["jaxpr"], inputs[:consts] + carry + inputs[consts + carries :])
+                merged = [a or b for a, b in zip(carry, outputs[:carries], strict=True)]
+                if merged == carry:
+                    break
+                carry = merged
+        elif name == "while":
+            cond_consts, body_consts = params["cond_nconsts"], params["body_nconsts"]
+            start = cond_consts + body_consts
+            carry = inputs[start:]
+            while True:
+                new = run(params["body_jaxpr"], inputs[cond_consts:start] + carry)
+                merged = [a or b for a, b in zip(carry, new, strict=True)]
+                if merged == carry:
+                    break
+                carry = merged
+            if any(run(params["cond_jaxpr"], inputs[:cond_consts] + carry)):
+                return everything  # the number of iterations depends on the inputs
+            outputs = carry
         else:
-            return any(used[j] for j in positions)
-    dependent = {jaxpr.invars[j] for j in positions}
-
-    def is_var(v):
-        return isinstance(v, jex_core.Var) and not isinstance(v, jex_core.Literal)
-
-    for eqn in jaxpr.eqns:  # a nested call counts as using all of its inputs
-        if any(is_var(v) and v in dependent for v in eqn.invars):
-            dependent.update(eqn.outvars)
-    return any(is_var(v) and v in dependent for v in jaxpr.outvars)
+            inner = next(
+                (params[k] for k in ("jaxpr", "call_jaxpr", "fun_jaxpr") if k in params), None
+            )
+            if inner is None:
+                return everything
+            outputs = run(inner, inputs)
+        if len(outputs) != len(eqn.outvars):
+            return everything
+        return outputs
+    except (KeyError, TypeError, ValueError, AttributeError):
+        return everything
 
 
 def _broadcast_shapes(a: tuple, b: tuple, name: str, received: tuple) -> tuple:
@@ -1069,8 +1152,9 @@ def integrate(
     q-dependent `omega` with a Magnus method, or an `omega(t, q)` that reads t when its step times
     t0 + k·dt need not increase: far from zero the time dtype's spacing exceeds half a step (float32
     times at a Unix time such as t0 = 1.7e9 are 128 s apart; the message says whether t0 or the
-    run's length is to blame). Checked when t0 and dt are concrete; an `omega` whose output does
-    not depend on t (a data-flow check that sees into `jax.jit`, `lax.cond` and the like) is never
+    run's length is to blame; midpoint, rk4 and cf4 need their half steps told apart too, a finer
+    spacing). Checked when t0 and dt are concrete; an `omega` whose output does not depend on t (a
+    data-flow check that sees into `jax.jit`, `lax.cond`, loops and custom derivatives) is never
     rejected.
 
     Example:
@@ -1104,7 +1188,7 @@ def integrate(
         )
         reads = _reads_time(omega, q0)
         check_times_advance(
-            t0_given, dt_given, num_steps, time_dtype, "`omega(t, q)`", reads, widen
+            t0_given, dt_given, num_steps, time_dtype, "`omega(t, q)`", reads, widen, method
         )
     # Samples on the integration grid (same dt and t0, known before tracing) are fed to the scan as
     # per-step inputs: reverse mode then costs O(num_steps) instead of a full-size scatter per step.

@@ -541,8 +541,20 @@ def test_step_times_matter_only_for_functions_of_time():
     def branching(t, q, w):
         return jax.lax.cond(jnp.all(w > 0), damping, lambda *a: 2 * damping(*a), t, q, w)
 
+    @jax.custom_jvp
+    def smooth(t, q, w):  # custom derivatives: the primal is what runs
+        return -0.1 * w
+
+    smooth.defjvp(lambda primals, tangents: (smooth(*primals), -0.1 * tangents[2]))
+
+    def looped(t, q, w):  # t carried through a while loop, never into the torque
+        state = (0, -0.1 * w, t)
+        return jax.lax.while_loop(lambda c: c[0] < 2, lambda c: (c[0] + 1, c[1], c[2]), state)[1]
+
     torques = {
         "plain": damping,
+        "custom_jvp": smooth,
+        "while_loop": looped,
         "jit": jax.jit(damping),
         "filter_jit Module": eqx.filter_jit(Damping(jnp.array(0.1))),
         "checkpoint": jax.checkpoint(damping),
@@ -584,42 +596,56 @@ def test_step_times_matter_only_for_functions_of_time():
         jq.integrate(Q0, lambda t: OMEGA, 0.01, 5, t0=1e20)
 
 
-def _step_times(t0, dt, num_steps, dtype):
+def _step_times(t0, dt, num_steps, dtype, half_steps=False):
     """The step times t0 + float(k)·dt as the runs form them, each operation rounded to `dtype`
     (NumPy computes float16 and bfloat16 in float32 and rounds once more, which is exact for a sum
-    or a product of two such numbers)."""
+    or a product of two such numbers); with `half_steps`, interleaved with the stage times
+    t_k + ½dt of midpoint, rk4 and cf4."""
     dtype = jnp.dtype(dtype)
     k = np.arange(num_steps + 1).astype(dtype)
-    return np.asarray(t0, dtype) + k * np.asarray(dt, dtype)
+    times = np.asarray(t0, dtype) + k * np.asarray(dt, dtype)
+    if not half_steps:
+        return times
+    halves = times[:-1] + np.asarray(0.5, dtype) * np.asarray(dt, dtype)
+    return np.stack([times[:-1], halves], -1).reshape(-1)
 
 
+@pytest.mark.parametrize("method", ["euler", "midpoint"])
 @pytest.mark.parametrize("dtype", ["float16", "bfloat16", "float32"])
-def test_step_times_the_check_accepts_increase(dtype):
+def test_step_times_the_check_accepts_increase(dtype, method):
     """Against the arithmetic itself: for runs around the boundary (the spacing of the run's largest
-    |t| from a quarter to four steps; origins on and off the grid of the step; runs crossing zero),
-    every run the check accepts has strictly increasing step times as the dtype forms them. Of the
-    runs it refuses, over a quarter do have two equal times (the rest step unevenly, by one
-    spacing or two: their spacing exceeds half a step), among them a step
-    of exactly the spacing from an origin half a spacing off its grid (ties round to even)."""
+    |t| from a sixteenth of a step to four steps; origins at zero, on and off the grid of the step, half a step
+    off it; runs crossing zero), every run the check accepts has strictly increasing times as the
+    dtype forms them: the step times for a one-stage method, and the half steps between them too
+    for midpoint (and rk4 and cf4). Of the runs it refuses, a good share do have two equal times
+    (the rest step unevenly, by one spacing or two), among them a step of exactly the spacing from
+    an origin half a spacing off its grid (ties round to even). From t0 = 0 a one-stage method's
+    times are one rounding of k·dt: a spacing up to just under a step is accepted."""
     from jaxquat._integrate import check_times_advance
+
+    def check(t0, dt, num_steps):
+        check_times_advance(t0, dt, num_steps, dtype, "`f(t)`", lambda t: True, "", method)
 
     rng = np.random.default_rng(5)
     eps = float(jnp.finfo(dtype).eps)
     accepted = refused = stalled = 0
     for _ in range(400):
         dt = float(np.asarray(2.0 ** rng.uniform(-8, 2) * rng.choice([1, -1]), dtype))
-        scale = abs(dt) / eps * 2.0 ** rng.uniform(-2, 2)  # where the spacing is dt/4 .. 4 dt
+        scale = abs(dt) / eps * 2.0 ** rng.uniform(-4, 2)  # where the spacing is dt/16 .. 4 dt
         t0 = float(rng.uniform(-1, 1) * scale)
         num_steps = int(rng.integers(1, min(4000, 2 * scale / abs(dt)) + 2))
-        if rng.random() < 0.3:
+        origin = rng.random()
+        if origin < 0.2:
+            t0 = 0.0
+        elif origin < 0.5:
             t0 = round(t0 / dt) * dt + (dt / 2 if rng.random() < 0.5 else 0.0)
         t0 = float(np.asarray(t0, dtype))
-        times = _step_times(t0, dt, num_steps, dtype).astype(np.float64)
+        times = _step_times(t0, dt, num_steps, dtype, method == "midpoint").astype(np.float64)
         if not np.all(np.isfinite(times)):
             continue
         increasing = bool(np.all(np.diff(times) * np.sign(dt) > 0))
         try:
-            check_times_advance(t0, dt, num_steps, dtype, "`f(t)`", lambda t: True, "")
+            check(t0, dt, num_steps)
         except ValueError:
             refused += 1
             stalled += not increasing
@@ -631,8 +657,39 @@ def test_step_times_the_check_accepts_increase(dtype):
     times = _step_times(0.5, 1.0, 2 ** (jnp.finfo(dtype).nmant + 1) + 3, dtype)
     assert np.any(np.diff(times.astype(np.float64)) == 0)
     with pytest.raises(ValueError, match="Split the run"):
-        check_times_advance(0.5, 1.0, times.size - 1, dtype, "`f(t)`", lambda t: True, "")
-    check_times_advance(0.0, 1.0, times.size - 4, dtype, "`f(t)`", lambda t: True, "")  # exact
+        check(0.5, 1.0, times.size - 1)
+    if method == "euler":  # exact times, whose spacing reaches the step
+        check(0.0, 1.0, times.size - 4)
+    # From 0, a spacing between half a step and a step: one rounding, the times increase.
+    dt = float(np.asarray(0.75, dtype))
+    num_steps = int(2 ** jnp.finfo(dtype).nmant * 1.2)
+    times = _step_times(0.0, dt, num_steps, dtype).astype(np.float64)
+    assert np.all(np.diff(times) > 0) and np.diff(times).min() < dt / 1.4  # uneven, increasing
+    if method == "euler":
+        check(0.0, dt, num_steps)
+    else:  # the half steps collapse onto the step times
+        halves = _step_times(0.0, dt, num_steps, dtype, True).astype(np.float64)
+        assert np.any(np.diff(halves) <= 0)
+        with pytest.raises(ValueError, match="evaluates at half steps too"):
+            check(0.0, dt, num_steps)
+
+
+def test_step_times_from_zero_one_stage_methods_take_a_coarser_spacing():
+    """From t0 = 0 the step times are one rounding of k·dt: float16 times from 0 over 1,200 steps
+    of 0.01 reach 12, where the spacing is 0.0078, over half a step, yet they increase (refused by
+    an earlier version of the check, although the run had worked). A one-stage method runs; cf4
+    calls the torque at half steps too, which collapse onto step times there, and is refused."""
+    times = np.float16(0) + np.arange(1201).astype(np.float16) * np.float16(0.01)
+    steps = np.diff(times.astype(np.float64))
+    assert steps.min() > 0 and steps.max() > 1.5 * steps.min()  # increasing, unevenly
+    halves = times[:-1] + np.float16(0.5) * np.float16(0.01)
+    assert np.any(halves == times[1:]) or np.any(halves == times[:-1])
+    torque = lambda t, q, w: jnp.stack([0.1 * jnp.sin(t), 0 * t, 0 * t]).astype(q.dtype)  # noqa: E731
+    q, w, i = (x.astype(jnp.float16) for x in (Q0, OMEGA, MOMENTS))
+    qs, _ = jq.simulate_rigid_body(q, w, i, 0.01, 1200, torque=torque, method="euler", save="final")
+    assert bool(jnp.isfinite(qs.astype(float)).all())
+    with pytest.raises(ValueError, match="method 'cf4' evaluates at half steps too"):
+        jq.simulate_rigid_body(q, w, i, 0.01, 1200, torque=torque, save="final")
 
 
 def test_step_times_that_overflow_are_named():
@@ -640,7 +697,9 @@ def test_step_times_that_overflow_are_named():
     both named, with a function of time; the advice for a float32 state names float64."""
     torque = lambda t, q, w: jnp.stack([t, 0 * t, 0 * t]).astype(q.dtype)  # noqa: E731
     q, w, i = (x.astype(jnp.float16) for x in (Q0, OMEGA, MOMENTS))
-    with pytest.raises(ValueError, match=r"`t0` = 1e\+06 overflows float16 \(largest 65504\)"):
+    with pytest.raises(
+        ValueError, match=r"`t0` = 1e\+06 overflows float16 \(largest 65504\).*\|t0\|"
+    ):
         jq.simulate_rigid_body(q, w, i, 0.01, 4, torque=torque, t0=1e6)
     with pytest.raises(ValueError, match=r"reach \|t\| = 100000, beyond the largest float16"):
         jq.simulate_rigid_body(q, w, i, 1000.0, 100, torque=torque)
