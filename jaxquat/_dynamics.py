@@ -469,11 +469,8 @@ def _long_run_scan(run: _LongRun, field, t0, dt, dtype, carry0, output=lambda ca
     return final[:2], saved
 
 
-def _widen_state(dtype) -> str:
-    """The advice of `check_times_advance` for a run whose times take the state's dtype."""
-    if jnp.dtype(dtype).itemsize >= 8:
-        return ""
-    return " or use a float64 state (jax_enable_x64 and a float64 q0), whose times are float64"
+# The advice of `check_times_advance` for a run whose times take the state's dtype.
+_WIDEN_STATE = " or use a float64 state (jax_enable_x64 and a float64 q0), whose times are float64"
 
 
 def simulate_rigid_body(
@@ -573,7 +570,7 @@ def simulate_rigid_body(
     t0 = _check_finite_scalar(t0, "t0").astype(dtype)
     if torque is not None:
         reads, what = _reads_time(torque, q0, omega0), "`torque(t, q, omega)`"
-        widen = _widen_state(dtype)
+        widen = _WIDEN_STATE
         check_times_advance(t0_given, dt_given, num_steps, dtype, what, reads, widen, method)
 
     compensated, renormalize_every = long_run_options(method, dtype, compensated, renormalize_every)
@@ -776,7 +773,7 @@ def simulate_deformable_body(
         raise ValueError(f"`masses` must have shape (n,); got shape {tuple(masses.shape)}.")
     _check_nonempty(masses.shape[0])
     dtype = q0.dtype  # the orientation's dtype governs, as in `integrate`
-    t0_given, dt_given, widen = t0, dt, _widen_state(dtype)
+    t0_given, dt_given = t0, dt
     t0 = _check_finite_scalar(t0, "t0").astype(dtype)
     dt = _check_finite_scalar(dt, "dt").astype(dtype)
     try:  # a nested list is an array too (as in the integration below)
@@ -792,7 +789,7 @@ def simulate_deformable_body(
         )
     reads = _reads_time(positions)
     check_times_advance(
-        t0_given, dt_given, num_steps, dtype, "`positions(t)`", reads, widen, method
+        t0_given, dt_given, num_steps, dtype, "`positions(t)`", reads, _WIDEN_STATE, method
     )
     _check_positive_masses(masses)
     _check_not_collinear(masses, positions, t0)

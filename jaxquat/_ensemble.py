@@ -1233,7 +1233,7 @@ def simulate_ensemble(
             reads, what = _reads_time(torque, q, w), "`torque(t, q, omega)`"
         else:
             reads, what = _reads_time(omega_fn, q), "`omega(t, q)`"
-        widen = "" if time_dtype.itemsize >= 8 else " or turn on jax_enable_x64 (float64 times)"
+        widen = " or turn on jax_enable_x64 (float64 times)"
         check_times_advance(t0, dt, num_steps, time_dtype, what, reads, widen, method)
 
     def place(x, element_shape, fill):

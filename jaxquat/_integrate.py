@@ -788,7 +788,8 @@ def check_times_advance(
     increase and the callable `what` reads them. Far from zero a float's spacing exceeds half a
     step, and rounding then makes consecutive times equal (they stand still, then jump by two
     steps): float32 times at a Unix time t0 = 1.7e9 are 128 s apart; at t0 = 1e20 even float64
-    never moves. `widen` is the advice on a wider time dtype, if any; `method` the integrator's,
+    never moves. `widen` is the advice on a wider time dtype (left out when `dtype` has 64 bits
+    already); `method` the integrator's,
     whose stage times are `_STAGE_FRACTIONS[method]`.
 
     Checked only when `t0` and `dt` are concrete (as given: a Python number under `jit` is), `dt`
@@ -817,6 +818,7 @@ def check_times_advance(
     if not (math.isfinite(t0_value) and math.isfinite(dt_value)):
         return  # (the callers' own checks name a non-finite t0 or dt)
     dtype = jnp.dtype(dtype)
+    widen = widen if dtype.itemsize < 8 else ""
     info = jnp.finfo(dtype)  # (np.finfo knows no bfloat16)
     with np.errstate(over="ignore", under="ignore"):
         t0_run, dt_run = (float(np.asarray(x, dtype)) for x in (t0_value, dt_value))  # as run
@@ -944,8 +946,10 @@ def _depends_on(fn: Callable, *operands, argnums: tuple[int, ...] | None = None)
     `custom_vjp` functions (their primal), `lax.cond`/`switch` branches and `lax.scan`/`while_loop`
     bodies that ignore an input do not count as using it. A primitive it does not know counts as
     using all of its inputs (a `pure_callback`, say), and one fed a used input marks the references
-    it is given (`jax.new_ref`) as used too. An input multiplied by zero is used; one only printed
-    (`jax.debug.print`) is not, as the output does not see it."""
+    it is given (`jax.new_ref`) as used too. Once a used input has reached a side effect, every
+    later effect that returns a value (an `io_callback`) counts as using it, as the first may have
+    stored it. An input multiplied by zero is used; one only printed (`jax.debug.print`) is not, as
+    the output does not see it."""
     jaxpr = jax.make_jaxpr(fn)(*operands).jaxpr
     counts = [len(jax.tree.leaves(x)) for x in operands]
     chosen = set(range(len(operands)) if argnums is None else argnums)
@@ -961,15 +965,32 @@ def _is_ref(v) -> bool:
     return type(getattr(v, "aval", None)).__name__ == "AbstractRef"
 
 
+def _returns_effects(eqn) -> bool:
+    """Whether an equation has effects that can hand a value back to the computation (an
+    `io_callback`, a reference, a call holding one); debug printing and `jax.debug.callback`
+    return nothing."""
+    return any("Debug" not in type(effect).__name__ for effect in eqn.effects)
+
+
 def _forward_dependence(jaxpr, dependent_inputs: list[bool]) -> list[bool]:
     """Which outputs of `jaxpr` depend on the inputs flagged (forward data flow, equation by
     equation; nested jaxprs by `_equation_dependence`)."""
     dependent = {v for v, flag in zip(jaxpr.invars, dependent_inputs, strict=True) if flag}
+    leaked = False  # a flagged value reached a side effect, which may have stored it
     for eqn in jaxpr.eqns:
         inputs = [_is_var(v) and v in dependent for v in eqn.invars]
-        if not any(inputs):
+        # What one effect stores, a later one may return (an ordered `io_callback` that keeps q,
+        # then one without operands that hands it back): after a flagged value has reached any
+        # effect, every later effect that can return a value counts as depending on it.
+        # `eqn.effects` includes those of nested jaxprs, so a call or loop holding one is taken
+        # whole.
+        leaked = leaked or (any(inputs) and bool(eqn.effects))
+        if leaked and _returns_effects(eqn):
+            outputs = [True] * len(eqn.outvars)
+        elif not any(inputs):
             continue
-        outputs = _equation_dependence(eqn, inputs)
+        else:
+            outputs = _equation_dependence(eqn, inputs)
         dependent.update(v for v, flag in zip(eqn.outvars, outputs, strict=True) if flag)
         dependent.update(v for v in eqn.invars if _is_var(v) and _is_ref(v))  # written, maybe
     return [_is_var(v) and v in dependent for v in jaxpr.outvars]
@@ -1183,8 +1204,6 @@ def integrate(
         time_dtype = jnp.promote_types(jnp.result_type(t0, dt), q0.dtype)
         widen = (
             " or count time in float64 (jax_enable_x64, with t0 and dt Python numbers or float64)"
-            if time_dtype.itemsize < 8
-            else ""
         )
         reads = _reads_time(omega, q0)
         check_times_advance(

@@ -706,3 +706,23 @@ def test_step_times_that_overflow_are_named():
     q, w, i = (x.astype(jnp.float32) for x in (Q0, OMEGA, MOMENTS))
     with pytest.raises(ValueError, match=r"1\.7e\+09.* 128 apart.* or use a float64 state"):
         jq.simulate_rigid_body(q, w, i, 0.01, 4, torque=torque, t0=1.7e9)
+    # A float64 state has no wider dtype to advise: each entry point leaves its advice out.
+    q0 = Q0.astype(jnp.float64)
+    runs = {
+        "simulate_rigid_body": lambda: jq.simulate_rigid_body(
+            q0, OMEGA, MOMENTS, 0.01, 4, torque=torque, t0=1e20
+        ),
+        "integrate": lambda: jq.integrate(
+            q0, lambda t, q: jnp.stack([t, 0 * t, 0 * t]), 0.01, 4, t0=1e20
+        ),
+        "simulate_ensemble": lambda: jq.simulate_ensemble(
+            q0[None], lambda t, q: jnp.stack([t, 0 * t, 0 * t]), 0.01, 4, t0=1e20
+        ),
+    }
+    for name, run in runs.items():
+        with pytest.raises(ValueError, match="apart") as raised:
+            run()
+        message = str(raised.value)
+        assert "float64 times near |t0| are" in message, name
+        assert "use a float64" not in message and "in float64" not in message, name
+        assert "x64" not in message, name

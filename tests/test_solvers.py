@@ -864,9 +864,8 @@ def _wrapped(omega):
 @pytest.mark.parametrize("method", ["magnus4", "magnus6"])
 def test_magnus_accepts_a_wrapped_omega_of_t_and_refuses_a_wrapped_omega_of_q(method):
     """The q-dependence check read a nested call (jax.jit, eqx.filter_jit, checkpoint, cond) as using
-    all of its inputs: a jitted ω(t), which never reads q, was refused by every Magnus method. It
-    now asks JAX's dead-code elimination, which looks inside; a wrapped ω that does read q is still
-    refused. The accepted runs equal the unwrapped one's."""
+    all of its inputs: a jitted ω(t), which never reads q, was refused by every Magnus method. The
+    check now follows the data flow inside; a wrapped ω that does read q is still refused. The accepted runs equal the unwrapped one's."""
     q0 = jnp.array([1.0, 0.0, 0.0, 0.0])
     of_t = lambda t, q: jnp.array([jnp.cos(t), jnp.sin(2 * t), 0.5])  # noqa: E731
     of_q = lambda t, q: jq.rotate(jnp.array([jnp.cos(t), 0.0, 1.0]), q)  # noqa: E731
@@ -888,3 +887,57 @@ def test_magnus_accepts_a_wrapped_omega_of_t_and_refuses_a_wrapped_omega_of_q(me
         term = diffrax.ODETerm(jq.kinematic_vector_field(omega))
         with pytest.raises(ValueError, match="depends on q"):
             diffrax.diffeqsolve(term, solver, 0.0, 1.0, 0.05, q0)
+
+
+def _through_a_side_effect(wrap):
+    """ω(t, q) that hands q back through a side effect: an ordered `io_callback` stores q, a later
+    one with no operands returns it (each passed through `wrap`)."""
+    from jax.experimental import io_callback
+
+    box = {}
+
+    def store(q):
+        box["q"] = np.asarray(q)
+
+    def load():
+        return box["q"][1:]
+
+    def omega(t, q):
+        wrap(lambda q_: io_callback(store, None, q_, ordered=True))(q)
+        shape = jax.ShapeDtypeStruct((3,), q.dtype)
+        return wrap(lambda: io_callback(load, shape, ordered=True))() + jnp.array([0.0, 0.0, t])
+
+    return omega
+
+
+@pytest.mark.parametrize("wrap", [lambda f: f, jax.jit], ids=["plain", "jit"])
+def test_magnus_refuses_an_omega_that_reads_q_through_a_side_effect(wrap):
+    """A dependence on q carried by a side effect rather than by data flow (helper-46's repro):
+    the forward walk saw no path from q to the output and let magnus4 run it silently. After q has
+    reached any effect, every later effect that returns a value counts as depending on q. Printing
+    q with `jax.debug.print` alone still does not, and the runs that are refused are run by cf4."""
+    q0 = jnp.array([1.0, 0.0, 0.0, 0.0])
+    omega = _through_a_side_effect(wrap)
+    for method in ("magnus4", "magnus6"):
+        with pytest.raises(ValueError, match="depends on q"):
+            jq.integrate(q0, omega, 0.05, 4, method=method)
+        with pytest.raises(ValueError, match="depends on q"):
+            jq.simulate_ensemble(q0[None], omega, 0.05, 4, method=method)
+        term = diffrax.ODETerm(jq.kinematic_vector_field(omega))
+        with pytest.raises(ValueError, match="depends on q"):
+            diffrax.diffeqsolve(term, jq.Magnus4(), 0.0, 0.2, 0.05, q0)
+    # The callback really does feed q back: cf4 runs it and its result differs from the same run
+    # with ω = (0, 0, t) alone.
+    fed_back = jq.integrate(q0, omega, 0.05, 4, method="cf4", save="final")
+    alone = jq.integrate(
+        q0, lambda t, q: jnp.array([0.0, 0.0, t]), 0.05, 4, method="cf4", save="final"
+    )
+    assert float(jnp.max(jnp.abs(fed_back - alone))) > 1e-6
+
+    def printed(t, q):
+        jax.debug.print("q = {}", q)
+        return jnp.array([jnp.cos(t), 0.0, 0.5])
+
+    got = jq.integrate(q0, printed, 0.05, 4, method="magnus4", save="final")
+    expected = jq.integrate(q0, printed, 0.05, 4, method="cf4", save="final")
+    np.testing.assert_allclose(got, expected, atol=1e-6)
