@@ -1817,13 +1817,30 @@ def _settings(argv: list[str] | None) -> tuple[argparse.Namespace, Preset]:
         changes["repeats"] = args.repeats
     if args.output.exists() and not args.output.is_dir():
         raise ValueError(f"--output {args.output}: exists and is not a directory")
+    _check_creatable(args.output)
     return args, dataclasses.replace(PRESETS[args.preset], **changes)
+
+
+def _check_creatable(directory: Path) -> None:
+    """A `ValueError` when `directory` (absent) plainly cannot be made: its nearest existing
+    ancestor is a file, or one this user may not write into. Nothing is created here (`main` makes
+    it, and reports what else the system refuses)."""
+    ancestor = directory.absolute()
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if ancestor == directory.absolute():
+        return
+    if not ancestor.is_dir():
+        raise ValueError(f"--output {directory}: {ancestor} is not a directory")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise ValueError(f"--output {directory}: no permission to create it in {ancestor}")
 
 
 def will_run(argv: list[str]) -> bool:
     """Whether `main(argv)` gets past its argument checks: False for --help or arguments it rejects,
     which `main` prints without JAX's backend (the command line starts the backend only when True).
-    A directory `--output` that cannot be created is found later, by `main`."""
+    A directory `--output` that cannot be created for a reason `_check_creatable` does not foresee
+    is found later, by `main`."""
     try:
         with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
             _settings(argv)

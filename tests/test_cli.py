@@ -221,7 +221,27 @@ def test_bench_will_run_is_quiet_and_false_for_help_and_bad_arguments(capsys):
     assert not _bench.will_run(["--workloads", "W1,w1"])
     assert not _bench.will_run(["--dtypes", "float16"])
     assert not _bench.will_run(["--output", __file__])
+    assert not _bench.will_run(["--output", os.path.join(__file__, "sub", "dir")])
     assert capsys.readouterr() == ("", "")
+
+
+def test_bench_output_that_cannot_be_made_is_named_before_anything_runs(tmp_path, monkeypatch):
+    """An `--output` under a file, or in a directory this user may not write into, was found only
+    by `main` after JAX's backend had started. Nothing is created by the check."""
+    from jaxquat import _bench
+
+    (tmp_path / "a_file").write_text("")
+    with pytest.raises(ValueError, match=r"--output .*a_file is not a directory"):
+        _bench._check_creatable(tmp_path / "a_file" / "x" / "y")
+    target = tmp_path / "new" / "results"
+    _bench._check_creatable(target)  # creatable: no error, and nothing made
+    assert not (tmp_path / "new").exists()
+    _bench._check_creatable(tmp_path)  # (exists already)
+    # (The tests may run as root, for whom every directory is writable: the answer is simulated.)
+    monkeypatch.setattr(_bench.os, "access", lambda path, mode: False)
+    with pytest.raises(ValueError, match=r"no permission to create it in .*"):
+        _bench._check_creatable(target)
+    assert not _bench.will_run(["--output", str(target)])
 
 
 def test_help_exits_0(capsys):

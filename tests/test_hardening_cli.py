@@ -1175,6 +1175,7 @@ def test_a_backend_that_cannot_start_is_one_line(tmp_path, platform):
         (["--workloads", "W9"], "unknown workload(s) W9"),
         (["--dtypes", "float16"], "--dtypes must be float64 and/or float32"),
         (["--output", str(tmp_path / "a_file")], "exists and is not a directory"),
+        (["--output", str(tmp_path / "a_file" / "sub")], "a_file is not a directory"),
     ]:
         done = subprocess.run(
             [*bench, *arguments], capture_output=True, text=True, env=env, timeout=300
