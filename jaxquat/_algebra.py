@@ -170,7 +170,10 @@ def exp(q: ArrayLike) -> Array:
     huge = jnp.isinf(theta_sq) & jnp.all(jnp.isfinite(v), axis=-1)
     size = scaled_norm(jnp.where(huge[..., None], v, jnp.ones_like(v)))
     w = jnp.where(huge, scale * jnp.cos(size), w)
-    xyz = jnp.where(huge[..., None], (scale * jnp.sin(size) / size)[..., None] * v, xyz)
+    # (sin|v| times the direction: sin|v|/|v| itself is subnormal above |v| ~ 1e307, ~4e37 in
+    # float32, and XLA:CPU flushes it to 0, losing the vector part.)
+    direction = unit_vector(jnp.where(huge[..., None], v, jnp.ones_like(v)))
+    xyz = jnp.where(huge[..., None], (scale * jnp.sin(size))[..., None] * direction, xyz)
     # eʷ = ∞ times a zero component is a zero component (as for complex exp(800 + 0j) = ∞ + 0j).
     xyz = jnp.where(jnp.isinf(scale)[..., None] & (v == 0), jnp.zeros_like(xyz), xyz)
     return jnp.concatenate([w[..., None], xyz], axis=-1)

@@ -80,7 +80,8 @@ def from_axis_angle(axis: ArrayLike, angle: ArrayLike) -> Array:
 
     `axis` need not be unit (it is normalised; a zero axis gives the identity for any finite angle, and
     so does an all-subnormal one, which XLA:CPU flushes to zero).
-    `angle` has shape `(...)` and broadcasts with the batch shape of `axis`. NaN in either gives NaN.
+    `angle` has shape `(...)` and broadcasts with the batch shape of `axis`. NaN in either, or an
+    infinite component of the axis (which has no direction), gives NaN in every component.
 
     Example: `from_axis_angle([0, 0, 2], jnp.pi / 2)` is `[0.70711, 0, 0, 0.70711]`.
     """
@@ -89,15 +90,16 @@ def from_axis_angle(axis: ArrayLike, angle: ArrayLike) -> Array:
     axis, angle = broadcast_batch((axis, 1, "axis"), (angle, 0, "angle"))
     # `unit_vector` divides by the largest |component| first, so |axis|² can neither overflow nor
     # underflow (a float32 axis of length 1e20 or 1e-20 has a direction too). A zero axis is replaced
-    # by a safe one (its angle is dropped below); a NaN axis is not all zero and stays NaN.
+    # by a safe one (its angle is dropped below); a NaN or infinite axis is not all zero and gives
+    # NaN.
     has_axis = ~jnp.all(axis == 0, axis=-1, keepdims=True)
     unit = unit_vector(jnp.where(has_axis, axis, jnp.ones_like(axis)))
     # No axis, no rotation: the angle about a zero axis is dropped (else (cos θ/2, 0, 0, 0), not unit).
     # `0 * angle` rather than a literal 0 keeps a NaN angle NaN (its derivative is still 0).
     half = jnp.where(has_axis[..., 0], 0.5 * angle, 0.0 * angle)
     half = jnp.where(
-        jnp.any(jnp.isnan(axis), axis=-1), jnp.nan, half
-    )  # a NaN axis: NaN, w included
+        jnp.any(~jnp.isfinite(axis), axis=-1), jnp.nan, half
+    )  # a NaN or infinite axis: NaN, w included ((inf, 0, 0) gave a finite w and a NaN x)
     return jnp.concatenate([jnp.cos(half)[..., None], jnp.sin(half)[..., None] * unit], axis=-1)
 
 

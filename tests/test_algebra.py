@@ -188,6 +188,29 @@ def test_exp_and_log_where_squares_overflow_or_underflow():
         x = mpmath.mpf(size)
         want = [float(mpmath.cos(x)), 0.0, float(mpmath.sin(x) / x * x), 0.0]
         np.testing.assert_allclose(got, want, atol=1e-15)
+    # Beyond |v| ~ 1e307 (float64) and ~4e37 (float32) sin|v|/|v| is subnormal, flushed to 0 by
+    # XLA:CPU: the vector part was lost ((0, 1e38, 0, 0) in float32 gave (0.1468, 0, 0, 0)).
+    # One component: |v| is exact, and so is the reference. Several: sin and cos of |v| ~ 1e308
+    # hang on its last bit, so the result is checked for unit norm and a vector part along ±v.
+    for dtype, v in [
+        (np.float64, [0.0, 1.5e308, 0.0]),
+        (np.float64, [1e308, 1e308, 0.0]),
+        (np.float64, [3e307, -1e307, 2e306]),
+        (np.float32, [1e38, 0.0, 0.0]),
+        (np.float32, [-2e38, 1e38, 5e37]),
+    ]:
+        v = np.asarray(v, dtype)
+        tol = 1e-6 if dtype == np.float32 else 1e-15
+        got = np.asarray(jq.exp(np.concatenate([[0.0], v]).astype(dtype)), np.float64)
+        assert abs(np.linalg.norm(got) - 1.0) < tol, (dtype, v, got)
+        direction = v.astype(np.float64) / np.abs(v).max()  # (|v|² overflows)
+        direction /= np.linalg.norm(direction)
+        np.testing.assert_allclose(got[1:], np.dot(got[1:], direction) * direction, atol=tol)
+        assert abs(abs(np.dot(got[1:], direction)) - np.sqrt(1 - got[0] ** 2)) < 10 * tol
+        if np.count_nonzero(v) == 1:
+            x = mpmath.mpf(float(v[np.flatnonzero(v)[0]]))
+            want = [float(mpmath.cos(x))] + [float(mpmath.sin(x)) * np.sign(c) for c in v]
+            np.testing.assert_allclose(got, want, atol=tol)
     np.testing.assert_array_equal(jq.exp(np.array([800.0, 0, 0, 0])), [np.inf, 0, 0, 0])
     got = np.asarray(jq.exp(np.array([800.0, 1.0, 0, 0])))
     np.testing.assert_array_equal(got[2:], [0.0, 0.0])

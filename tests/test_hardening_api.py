@@ -117,6 +117,16 @@ def test_from_axis_angle_nan_axis_is_all_nan():
     assert np.all(np.isnan(jq.from_axis_angle(V.at[1].set(NAN), 0.3)))
 
 
+@pytest.mark.parametrize("value", [np.inf, -np.inf])
+def test_from_axis_angle_infinite_axis_is_all_nan(value):
+    """An infinite axis has no direction: (inf, 0, 0) gave a finite w and a NaN x, which reads as a
+    quaternion; now NaN throughout, as `from_rotvec` and `to_axis_angle` give for infinities."""
+    for axis in (ZERO3.at[0].set(value), V.at[2].set(value)):
+        assert np.all(np.isnan(jq.from_axis_angle(axis, 0.5)))
+        assert np.all(np.isnan(jax.jit(jq.from_axis_angle)(axis, 0.5)))
+    assert np.all(np.isnan(jq.from_rotvec(ZERO3.at[0].set(value))))
+
+
 def test_from_axis_angle_zero_axis_still_identity():
     np.testing.assert_array_equal(jq.from_axis_angle(ZERO3, 1.3), ID)
     np.testing.assert_array_equal(
