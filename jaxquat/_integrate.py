@@ -947,8 +947,8 @@ def _depends_on(fn: Callable, *operands, argnums: tuple[int, ...] | None = None)
     bodies that ignore an input do not count as using it. A primitive it does not know counts as
     using all of its inputs (a `pure_callback`, say), and one fed a used input marks the references
     it is given (`jax.new_ref`) as used too. Once a used input has reached a side effect, every
-    later effect that returns a value (an `io_callback`) counts as using it, as the first may have
-    stored it. An input multiplied by zero is used; one only printed (`jax.debug.print`) is not, as
+    effect that returns a value (an `io_callback`, before or after it) counts as using it, as the
+    first may have stored it. An input multiplied by zero is used; one only printed (`jax.debug.print`) is not, as
     the output does not see it."""
     jaxpr = jax.make_jaxpr(fn)(*operands).jaxpr
     counts = [len(jax.tree.leaves(x)) for x in operands]
@@ -972,19 +972,21 @@ def _returns_effects(eqn) -> bool:
     return any("Debug" not in type(effect).__name__ for effect in eqn.effects)
 
 
-def _forward_dependence(jaxpr, dependent_inputs: list[bool]) -> list[bool]:
+def _forward_dependence(jaxpr, dependent_inputs: list[bool], leaked: bool = False) -> list[bool]:
     """Which outputs of `jaxpr` depend on the inputs flagged (forward data flow, equation by
-    equation; nested jaxprs by `_equation_dependence`)."""
+    equation; nested jaxprs by `_equation_dependence`).
+
+    What one effect stores, another may return: an ordered `io_callback` that keeps q and one
+    without operands that hands it back, after it in the same call or before it (then it returns
+    the previous call's q), or a global `jax.new_ref` read and then written. Once a flagged value
+    has reached any effect, the walk is made again with every effect that can return a value
+    counted as depending on it (`leaked`). `eqn.effects` includes those of nested jaxprs, so a
+    call or loop holding one is taken whole and the nested walks never meet an effect."""
     dependent = {v for v, flag in zip(jaxpr.invars, dependent_inputs, strict=True) if flag}
-    leaked = False  # a flagged value reached a side effect, which may have stored it
+    leaks = False  # a flagged value reached a side effect, which may have stored it
     for eqn in jaxpr.eqns:
         inputs = [_is_var(v) and v in dependent for v in eqn.invars]
-        # What one effect stores, a later one may return (an ordered `io_callback` that keeps q,
-        # then one without operands that hands it back): after a flagged value has reached any
-        # effect, every later effect that can return a value counts as depending on it.
-        # `eqn.effects` includes those of nested jaxprs, so a call or loop holding one is taken
-        # whole.
-        leaked = leaked or (any(inputs) and bool(eqn.effects))
+        leaks = leaks or (any(inputs) and bool(eqn.effects))
         if leaked and _returns_effects(eqn):
             outputs = [True] * len(eqn.outvars)
         elif not any(inputs):
@@ -993,6 +995,8 @@ def _forward_dependence(jaxpr, dependent_inputs: list[bool]) -> list[bool]:
             outputs = _equation_dependence(eqn, inputs)
         dependent.update(v for v, flag in zip(eqn.outvars, outputs, strict=True) if flag)
         dependent.update(v for v in eqn.invars if _is_var(v) and _is_ref(v))  # written, maybe
+    if leaks and not leaked:
+        return _forward_dependence(jaxpr, dependent_inputs, leaked=True)
     return [_is_var(v) and v in dependent for v in jaxpr.outvars]
 
 

@@ -889,35 +889,41 @@ def test_magnus_accepts_a_wrapped_omega_of_t_and_refuses_a_wrapped_omega_of_q(me
             diffrax.diffeqsolve(term, solver, 0.0, 1.0, 0.05, q0)
 
 
-def _through_a_side_effect(wrap):
-    """ω(t, q) that hands q back through a side effect: an ordered `io_callback` stores q, a later
-    one with no operands returns it (each passed through `wrap`)."""
+def _through_a_side_effect(wrap, load_first):
+    """ω(t, q) that hands q back through a side effect: an ordered `io_callback` stores q, another
+    with no operands returns it (each passed through `wrap`), after the store or before it (then
+    it returns the q of the previous call; the first call finds the identity's)."""
     from jax.experimental import io_callback
 
-    box = {}
+    box = {"q": np.array([1.0, 0.0, 0.0, 0.0])}
 
     def store(q):
         box["q"] = np.asarray(q)
 
     def load():
-        return box["q"][1:]
+        return box["q"][1:].astype(np.float64)
 
     def omega(t, q):
-        wrap(lambda q_: io_callback(store, None, q_, ordered=True))(q)
         shape = jax.ShapeDtypeStruct((3,), q.dtype)
-        return wrap(lambda: io_callback(load, shape, ordered=True))() + jnp.array([0.0, 0.0, t])
+        loaded = wrap(lambda: io_callback(load, shape, ordered=True))() if load_first else None
+        wrap(lambda q_: io_callback(store, None, q_, ordered=True))(q)
+        if not load_first:
+            loaded = wrap(lambda: io_callback(load, shape, ordered=True))()
+        return loaded + jnp.array([0.0, 0.0, t])
 
     return omega
 
 
+@pytest.mark.parametrize("load_first", [False, True], ids=["store-load", "load-store"])
 @pytest.mark.parametrize("wrap", [lambda f: f, jax.jit], ids=["plain", "jit"])
-def test_magnus_refuses_an_omega_that_reads_q_through_a_side_effect(wrap):
-    """A dependence on q carried by a side effect rather than by data flow (helper-46's repro):
-    the forward walk saw no path from q to the output and let magnus4 run it silently. After q has
-    reached any effect, every later effect that returns a value counts as depending on q. Printing
-    q with `jax.debug.print` alone still does not, and the runs that are refused are run by cf4."""
+def test_magnus_refuses_an_omega_that_reads_q_through_a_side_effect(wrap, load_first):
+    """A dependence on q carried by a side effect rather than by data flow (helper-46's and
+    helper-47's repros): the forward walk saw no path from q to the output and let magnus4 run it
+    silently. Once q has reached any effect, every effect that returns a value counts as depending
+    on q, before it (a load of the previous call's q) or after it. Printing q with
+    `jax.debug.print` alone still does not, and the runs that are refused are run by cf4."""
     q0 = jnp.array([1.0, 0.0, 0.0, 0.0])
-    omega = _through_a_side_effect(wrap)
+    omega = _through_a_side_effect(wrap, load_first)
     for method in ("magnus4", "magnus6"):
         with pytest.raises(ValueError, match="depends on q"):
             jq.integrate(q0, omega, 0.05, 4, method=method)
@@ -940,4 +946,24 @@ def test_magnus_refuses_an_omega_that_reads_q_through_a_side_effect(wrap):
 
     got = jq.integrate(q0, printed, 0.05, 4, method="magnus4", save="final")
     expected = jq.integrate(q0, printed, 0.05, 4, method="cf4", save="final")
+    np.testing.assert_allclose(got, expected, atol=1e-6)
+
+
+def test_magnus_refuses_an_omega_that_reads_q_through_a_global_reference():
+    """A global `jax.new_ref` read, then written with q: the value read is the previous call's q
+    (helper-47's repro; the walk saw the write only after the read). A reference read alone is a
+    function of t only and runs."""
+    q0 = jnp.array([1.0, 0.0, 0.0, 0.0])
+    ref = jax.new_ref(jnp.zeros(3))
+
+    def through(t, q):
+        previous = ref[...]
+        ref[...] = q[1:]
+        return previous + jnp.array([0.0, 0.0, t])
+
+    with pytest.raises(ValueError, match="depends on q"):
+        jq.integrate(q0, through, 0.05, 4, method="magnus4")
+    read_only = lambda t, q: ref[...] + jnp.array([jnp.cos(t), 0.0, 0.5])  # noqa: E731
+    got = jq.integrate(q0, read_only, 0.05, 4, method="magnus4", save="final")
+    expected = jq.integrate(q0, read_only, 0.05, 4, method="cf4", save="final")
     np.testing.assert_allclose(got, expected, atol=1e-6)
