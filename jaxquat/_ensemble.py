@@ -1336,7 +1336,14 @@ def simulate_ensemble(
     elif traced_time:
         times = t0 + dt * jnp.asarray(saved_steps, jnp.result_type(dt, t0))
     else:
-        times = float(t0) + float(dt) * np.asarray(saved_steps, np.float64)
+        with np.errstate(over="ignore", invalid="ignore"):
+            times = float(t0) + float(dt) * np.asarray(saved_steps, np.float64)
+        if not np.all(np.isfinite(times)):  # (the run wrote an ensemble `load_ensemble` refused)
+            k = saved_steps[int(np.argmin(np.isfinite(times)))]
+            raise ValueError(
+                f"`dt` = {float(dt)!r}, `t0` = {float(t0)!r}: the time t0 + k·dt of saved step "
+                f"k = {k} overflows float64; use a smaller |dt| or |t0|, or fewer steps."
+            )
     if path is not None and traced_time:
         raise ValueError(
             "`path`: a run whose `dt` or `t0` is traced (under jax.jit or a derivative) cannot be "

@@ -952,3 +952,24 @@ def test_a_short_write_names_the_file_and_the_likely_cause(tmp_path, capsys, mon
     err = capsys.readouterr().err
     assert status == 2 and err.count("\n") == 1, err
     assert err.startswith(f"jaxquat: error: {run}") and "(is the disk full?)" in err, err
+
+
+def test_saved_times_that_overflow_are_refused_before_the_run(tmp_path, capsys):
+    """t0 + k·dt beyond float64 at a saved step: `simulate` exited 0 and wrote an ensemble that
+    `load_ensemble` then refused (helper-49). Now a ValueError naming dt and the step, before
+    anything is written; the command line prints it as one line and exits 2."""
+    q0 = jnp.array([[1.0, 0.0, 0.0, 0.0]])
+    with pytest.raises(ValueError, match=r"`dt` = 1e\+307.*saved step k = 20 overflows float64"):
+        simulate_ensemble(q0, jnp.zeros(3), 1e307, 100, save_every=10, path=tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+    with pytest.raises(ValueError, match=r"`t0` = -1\.7e\+308.*saved step k = 1 overflows"):
+        simulate_ensemble(q0, jnp.zeros(3), -1e308, 2, t0=-1.7e308, save_every=1)
+    # Times that stay finite are kept, in float64.
+    run = simulate_ensemble(q0, jnp.zeros(3), 1e306, 100, save_every=10)
+    np.testing.assert_array_equal(run.times, 1e306 * np.arange(0, 101, 10))
+    argv = ["simulate", "--dt", "1e307", "--dtype", "float64", "--steps", "100", "--bodies", "4"]
+    argv += ["--omega-scale", "0", "--save-every", "10", "--no-progress"]
+    status = main([*argv, "--output", str(tmp_path / "cli")])
+    out, err = capsys.readouterr()
+    assert status == 2 and err.count("\n") == 1 and "overflows float64" in err, err
+    assert not (tmp_path / "cli").exists()
