@@ -1344,6 +1344,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = None
     if from_command_line:
         sys.unraisablehook = _redelivering(sys.unraisablehook)
+        # On a stdout that cannot encode ° or ω (PYTHONIOENCODING=ascii, a Windows redirect in
+        # cp1252) the UnicodeEncodeError, a ValueError, ended a run that had succeeded with exit 2
+        # as if an argument were bad. Such characters print as '?' instead.
+        if sys.stdout is not None and hasattr(sys.stdout, "reconfigure"):
+            with contextlib.suppress(ValueError, OSError, AttributeError):
+                sys.stdout.reconfigure(errors="replace")
     try:
         parser = _build_parser()
         # Everything after `bench` belongs to the benchmark suite.

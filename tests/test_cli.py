@@ -570,3 +570,19 @@ def test_fit_with_stdout_closed_is_an_error(tmp_path):
     assert proc.stderr == (
         "jaxquat: error: standard output is closed: there is nowhere to write the fit\n"
     )
+
+
+def test_a_stdout_that_cannot_encode_the_summary_does_not_fail_the_run(tmp_path):
+    """`simulate` under PYTHONIOENCODING=ascii (a Windows redirect in cp1252 alike) wrote its
+    ensemble, then died on the summary's '°' with exit 2, reported as bad input (helper-49).
+    The characters print as '?' and the run exits 0."""
+    argv = ["simulate", "--bodies", "2", "--steps", "2", "--no-progress"]
+    done = subprocess.run(
+        [sys.executable, "-m", "jaxquat", *argv, "--output", str(tmp_path / "run")],
+        capture_output=True,
+        env=dict(os.environ, JAX_PLATFORMS="cpu", PYTHONIOENCODING="ascii"),
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr
+    assert b"angle from start" in done.stdout and b"?" in done.stdout and done.stderr == b""
+    assert jaxquat.load_ensemble(tmp_path / "run")["final"].shape == (2, 4)
