@@ -14,6 +14,7 @@ calls it with the same arguments (e.g. initial conditions made from the same see
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import errno
 import json
@@ -612,6 +613,16 @@ class _MalformedEnsemble(Exception):
     pass
 
 
+def _without_repeated_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """A JSON object as a dict, refusing a key given twice (`json` keeps the last one silently:
+    `"dt": 0.01, "dt": 0.02` in an edited index doubled every saved time)."""
+    counts = collections.Counter(key for key, _ in pairs)
+    repeated = sorted(key for key, count in counts.items() if count > 1)
+    if repeated:
+        raise _MalformedEnsemble(f"index.json gives {', '.join(map(repr, repeated))} twice.")
+    return dict(pairs)
+
+
 def _index_int(
     index: dict, key: str, *, minimum: int = 0, steps: bool = False, optional: bool = False
 ) -> int | None:
@@ -758,7 +769,7 @@ def _read_ensemble(path: str, index_path: str) -> dict[str, Any]:
         # utf-8-sig: an index saved again by an editor that adds a byte-order mark still reads (as
         # the command line's CSV and TOML files do).
         with open(index_path, encoding="utf-8-sig") as f:
-            index = json.load(f)
+            index = json.load(f, object_pairs_hook=_without_repeated_keys)
     except RecursionError:  # the JSON decoder recurses once per level of nesting
         raise _MalformedEnsemble(
             "index.json is nested too deeply to be a jaxquat ensemble index."
@@ -789,6 +800,20 @@ def _read_ensemble(path: str, index_path: str) -> dict[str, Any]:
             f"index.json: dtype must name a float dtype, got {index['dtype']!r}."
         )
     dtype = jnp.dtype(index["dtype"])
+    # The run's account, where the index gives it, must agree with itself (an edited count or a
+    # frame no run has loaded as written).
+    if "num_bodies" in index and (
+        isinstance(index["num_bodies"], bool) or index["num_bodies"] != math.prod(batch)
+    ):
+        raise _MalformedEnsemble(
+            f"index.json: num_bodies {index['num_bodies']!r} is not the number of bodies of "
+            f"batch_shape {shape} ({math.prod(batch)})."
+        )
+    for key, known in (("frame", ("world", "body")), ("method", METHODS)):
+        if key in index and index[key] not in known:
+            raise _MalformedEnsemble(
+                f"index.json: {key} must be one of {', '.join(known)}; got {index[key]!r}."
+            )
     dynamic = _index_bool(index, "dynamic") if "dynamic" in index else False
     complete = _index_bool(index, "complete")
     t0 = _index_float(index, "t0")

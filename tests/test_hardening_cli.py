@@ -306,11 +306,26 @@ def test_load_ensemble_checks_the_final_arrays(run, name, array, fragment):
         ({"batch_shape": ["5"]}, "batch_shape must be a list of non-negative integers"),
         ({"dtype": "int8"}, "dtype must name a float dtype"),
         ({"final": {"final": "final.npy", "bogus": "final.npy"}}, "unknown final array"),
+        # The run's account must agree with itself (these loaded, the metadata saying 9 bodies).
+        ({"num_bodies": 9}, r"num_bodies 9 is not the number of bodies of batch_shape \[5\] \(5\)"),
+        ({"num_bodies": True}, "num_bodies True is not the number of bodies"),
+        ({"frame": "sideways"}, "frame must be one of world, body; got 'sideways'"),
+        ({"method": 5}, "method must be one of euler, .*; got 5"),
     ],
 )
 def test_load_ensemble_validates_the_index(run, changes, fragment):
     _edit_index(run, **changes)
     with pytest.raises(ValueError, match=fragment):
+        load_ensemble(run)
+
+
+def test_load_ensemble_refuses_a_key_given_twice(run):
+    """JSON keeps the last of two equal keys: `"dt": 0.01, "dt": 0.02` in an edited index loaded
+    with every saved time doubled while the run's metadata still said 0.01 (helper-49)."""
+    text = (run / "index.json").read_text()
+    assert load_ensemble(run)["metadata"]["dt"] == 0.1 and text.count('"dt": 0.1,') == 1
+    (run / "index.json").write_text(text.replace('"dt": 0.1,', '"dt": 0.1, "dt": 0.2,'))
+    with pytest.raises(ValueError, match=r"index.json gives 'dt' twice"):
         load_ensemble(run)
 
 
@@ -671,6 +686,39 @@ _SPINNING = [
     "0.8483130323045458,0.20314832622068418,0.27358535298448344,0.4052737487283834",
     "0.80108857956929169,0.25132584028508154,0.30482905787272818,0.44963502439765241",
 ]
+
+
+def _about_x(origin: str, interval: str) -> list[str]:
+    """Exact rows of ω = (0.5, 0, 0) at times origin + k·interval (written in decimal, k < 12)."""
+    import decimal
+
+    from scipy.spatial.transform import Rotation
+
+    rows = []
+    for k in range(12):
+        t = decimal.Decimal(origin) + k * decimal.Decimal(interval)
+        x, y, z, w = (
+            float(c) for c in Rotation.from_rotvec([0.5 * k * float(interval), 0, 0]).as_quat()
+        )
+        rows.append(f"{t},{w!r},{x!r},{y!r},{z!r}")
+    return rows
+
+
+def test_fit_refuses_times_that_float64_cannot_hold(tmp_path, capsys):
+    """Times 0.3 s apart from 1e15 read as multiples of 0.125 (float64's spacing there): the fit
+    gave |ω| = 0.49855 instead of 0.5, converged, with nothing said (helper-49). Moved by more than
+    a thousandth of the shortest interval, a time is now a one-line error naming its line; Unix
+    times in seconds with millisecond steps still fit."""
+    path = _write(tmp_path / "far.csv", _about_x("1000000000000000", "0.3"))
+    status, out, err = _run(["fit", path], capsys)
+    _assert_one_line_error(
+        status, out, err, "far.csv line 3", "1000000000000000.3", "0.05 s off", "subtract an origin"
+    )
+    for origin, interval in [("0", "0.3"), ("1700000000", "0.001"), ("1e15", "1")]:
+        path = _write(tmp_path / "near.csv", _about_x(origin, interval))
+        status, out, err = _run(["fit", path, "--json"], capsys)
+        assert status == 0, (origin, err)
+        np.testing.assert_allclose(json.loads(out)["omega"], [0.5, 0, 0], atol=1e-5)
 
 
 @pytest.mark.parametrize("interval, omega", [("e-160", 1e159), ("e+200", 1e-201)])
