@@ -986,7 +986,8 @@ def _forward_dependence(jaxpr, dependent_inputs: list[bool], leaked: bool = Fals
     leaks = False  # a flagged value reached a side effect, which may have stored it
     for eqn in jaxpr.eqns:
         inputs = [_is_var(v) and v in dependent for v in eqn.invars]
-        leaks = leaks or (any(inputs) and bool(eqn.effects))
+        # (`jax.debug.print` only prints: it stores nothing another effect could hand back.)
+        leaks = leaks or (any(inputs) and bool(eqn.effects) and eqn.primitive.name != "debug_print")
         if leaked and _returns_effects(eqn):
             outputs = [True] * len(eqn.outvars)
         elif not any(inputs):
