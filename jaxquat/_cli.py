@@ -389,6 +389,8 @@ def _check_times_hold(path: str, texts: list[str], times: list[float], lines: li
     import decimal
 
     shortest = min(b - a for a, b in zip(times, times[1:], strict=False))
+    if math.ulp(max(abs(times[0]), abs(times[-1]))) / 2 <= 1e-3 * shortest:
+        return  # (no rounding to the nearest double can move a time that far: the usual file)
     for text, value, number in zip(texts, times, lines, strict=True):
         moved = abs(float(decimal.Decimal(text) - decimal.Decimal(value)))
         if moved > 1e-3 * shortest:
