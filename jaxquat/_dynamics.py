@@ -570,8 +570,7 @@ def simulate_rigid_body(
     t0 = _check_finite_scalar(t0, "t0").astype(dtype)
     if torque is not None:
         reads, what = _reads_time(torque, q0, omega0), "`torque(t, q, omega)`"
-        widen = _WIDEN_STATE
-        check_times_advance(t0_given, dt_given, num_steps, dtype, what, reads, widen, method)
+        check_times_advance(t0_given, dt_given, num_steps, dtype, what, reads, _WIDEN_STATE, method)
 
     compensated, renormalize_every = long_run_options(method, dtype, compensated, renormalize_every)
     run = _LongRun(method, num_steps, save, save_every, compensated, renormalize_every)

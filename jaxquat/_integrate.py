@@ -896,15 +896,15 @@ def check_times_advance(
         spacing = float(_band_spacing(first, eps, tiny))
         raise ValueError(
             f"{run}: {dtype} times near |t0| are {spacing:.3g} apart, too coarse for steps of "
-            f"{dt_run:g}{rule}, {problem}. Count time from a nearer origin (a smaller |t0|, with {what} shifted to "
-            f"match){widen}."
+            f"{dt_run:g}{rule}, {problem}. Count time from a nearer origin (a smaller |t0|, with "
+            f"{what} shifted to match){widen}."
         )
     spacing = float(_band_spacing(magnitude, eps, tiny))
     raise ValueError(  # the run's length is to blame
         f"{run} and `num_steps` = {n:,} reach |t| = {float(magnitude):.10g} (counting the "
         f"steps' span n·|dt|), where {dtype} times are {spacing:.3g} apart, too coarse for "
-        f"steps of {dt_run:g}{rule}, {problem}. Split the run into shorter runs, each counting time from its own start "
-        f"(with {what} shifted to match){widen}."
+        f"steps of {dt_run:g}{rule}, {problem}. Split the run into shorter runs, each counting "
+        f"time from its own start (with {what} shifted to match){widen}."
     )
 
 
@@ -948,8 +948,8 @@ def _depends_on(fn: Callable, *operands, argnums: tuple[int, ...] | None = None)
     using all of its inputs (a `pure_callback`, say), and one fed a used input marks the references
     it is given (`jax.new_ref`) as used too. Once a used input has reached a side effect, every
     effect that returns a value (an `io_callback`, before or after it) counts as using it, as the
-    first may have stored it. An input multiplied by zero is used; one only printed (`jax.debug.print`) is not, as
-    the output does not see it."""
+    first may have stored it. An input multiplied by zero is used; one only printed
+    (`jax.debug.print`) is not, as the output does not see it."""
     jaxpr = jax.make_jaxpr(fn)(*operands).jaxpr
     counts = [len(jax.tree.leaves(x)) for x in operands]
     chosen = set(range(len(operands)) if argnums is None else argnums)

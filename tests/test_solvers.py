@@ -866,7 +866,8 @@ def _wrapped(omega):
 def test_magnus_accepts_a_wrapped_omega_of_t_and_refuses_a_wrapped_omega_of_q(method):
     """The q-dependence check read a nested call (jax.jit, eqx.filter_jit, checkpoint, cond) as using
     all of its inputs: a jitted ω(t), which never reads q, was refused by every Magnus method. The
-    check now follows the data flow inside; a wrapped ω that does read q is still refused. The accepted runs equal the unwrapped one's."""
+    check now follows the data flow inside; a wrapped ω that does read q is still refused. The
+    accepted runs equal the unwrapped one's."""
     q0 = jnp.array([1.0, 0.0, 0.0, 0.0])
     of_t = lambda t, q: jnp.array([jnp.cos(t), jnp.sin(2 * t), 0.5])  # noqa: E731
     of_q = lambda t, q: jq.rotate(jnp.array([jnp.cos(t), 0.0, 1.0]), q)  # noqa: E731
