@@ -305,9 +305,14 @@ def _unquote(field: str) -> str:
 def read_observations_csv(path: str):
     """Read `t,w,x,y,z` rows (header optional; blank lines and `#` comments skipped).
 
-    Returns `(times (T,), quaternions (T, 4))` as float64 NumPy arrays, or raises `CommandLineError`
-    naming the file and line of the first problem.
+    Returns `(origin, times (T,), quaternions (T, 4))`, the arrays float64 NumPy. `origin` is the
+    first time as the file writes it (None when that is 0), and `times` count from it: each is the
+    double nearest the exact (decimal) difference, so times far from zero keep their digits (at a
+    Unix time in seconds float64's own spacing is 2.4e-7 s; at 1e15 it is 0.125 s). Raises
+    `CommandLineError` naming the file and line of the first problem.
     """
+    import decimal
+
     import numpy as np
 
     text = _read_text(path, "CSV of t,w,x,y,z")
@@ -354,10 +359,12 @@ def read_observations_csv(path: str):
                     f"{path} line {number}: column {name} is not finite ({field})"
                 )
             values.append(value)
-        if rows and values[0] <= rows[-1][0]:
+        if rows and values[0] <= rows[-1][0] and not _rounded_alike(fields[0], time_fields[-1]):
+            later, earlier = _exact(values[0]), _exact(rows[-1][0])
+            if later == earlier:  # (one double: say what the file wrote)
+                later, earlier = fields[0], time_fields[-1]
             raise CommandLineError(
-                f"{path} line {number}: times must increase, but t = {_exact(values[0])} "
-                f"follows t = {_exact(rows[-1][0])}"
+                f"{path} line {number}: times must increase, but t = {later} follows t = {earlier}"
             )
         if values[1] == values[2] == values[3] == values[4] == 0.0:
             raise CommandLineError(f"{path} line {number}: the quaternion (w,x,y,z) is zero")
@@ -375,30 +382,54 @@ def read_observations_csv(path: str):
         raise CommandLineError(f"{path}: no data rows ({what})")
     if len(rows) < 3:
         raise CommandLineError(f"{path}: need at least 3 observations to fit ω, got {len(rows)}")
-    _check_times_hold(path, time_fields, [r[0] for r in rows], line_numbers)
     data = np.asarray(rows, dtype=np.float64)
-    return data[:, 0], data[:, 1:]
+    origin = time_fields[0] if rows[0][0] != 0 else None
+    if origin is not None or not _times_hold(data[:, 0].tolist()):
+        offsets = _offsets(path, time_fields, decimal.Decimal(origin or 0), line_numbers)
+        if offsets is None:  # (a span beyond float64: the fit refuses it, naming the span)
+            return None, data[:, 0], data[:, 1:]
+        data[:, 0] = offsets
+    return origin, data[:, 0], data[:, 1:]
 
 
-def _check_times_hold(path: str, texts: list[str], times: list[float], lines: list[int]) -> None:
-    """A `CommandLineError` when reading the times into float64 moved one by more than a
-    thousandth of the shortest interval: far from zero the doubles are coarse (0.125 s apart at
-    1e15), and 1000000000000000.3, .6, .9, … read as multiples of 0.125 fitted ω 0.3 % off with
-    nothing said. Unix times in seconds with microseconds (rounded by ≤ 1.2e-7 s) pass for
-    intervals down to 0.12 ms."""
+def _rounded_alike(later: str, earlier: str) -> bool:
+    """Whether the time `later` exceeds `earlier` though both read as the same double."""
     import decimal
 
+    return float(later) == float(earlier) and decimal.Decimal(later) > decimal.Decimal(earlier)
+
+
+def _times_hold(times: list[float]) -> bool:
+    """Whether rounding to the nearest double moved no time by more than a thousandth of the
+    shortest interval (a bound on half a unit in the last place at the largest |t|)."""
     shortest = min(b - a for a, b in zip(times, times[1:], strict=False))
-    if math.ulp(max(abs(times[0]), abs(times[-1]))) / 2 <= 1e-3 * shortest:
-        return  # (no rounding to the nearest double can move a time that far: the usual file)
-    for text, value, number in zip(texts, times, lines, strict=True):
-        moved = abs(float(decimal.Decimal(text) - decimal.Decimal(value)))
-        if moved > 1e-3 * shortest:
+    return math.ulp(max(abs(times[0]), abs(times[-1]))) / 2 <= 1e-3 * shortest
+
+
+def _offsets(path: str, texts: list[str], origin, lines: list[int]) -> list[float] | None:
+    """The times `texts` counted from `origin` (a `decimal.Decimal`), each the double nearest the
+    exact offset (0.6 s per 10⁶ rows), or None if the last overflows. Raises `CommandLineError` when rounding moved one by more
+    than a thousandth of the shortest interval (a span ~10¹³ times the shortest interval): the fit
+    would be quietly off (0.3 s steps read as multiples of 0.125 fitted ω 0.3 % off)."""
+    import decimal
+
+    context = decimal.Context(prec=60)  # the offsets are rounded once more, to 17 digits
+    exact = [context.subtract(decimal.Decimal(text), origin) for text in texts]
+    shortest = min(context.subtract(b, a) for a, b in zip(exact, exact[1:], strict=False))
+    offsets = [float(e) for e in exact]
+    if not math.isfinite(offsets[-1]):
+        return None
+    if _times_hold(offsets):
+        return offsets
+    for text, offset, value, number in zip(texts, exact, offsets, lines, strict=True):
+        moved = abs(context.subtract(offset, decimal.Decimal(value)))
+        if moved > shortest / 1000:
             raise CommandLineError(
-                f"{path} line {number}: the time {text} reads as {_exact(value)} in float64, "
-                f"{moved:.3g} s off, too coarse for intervals of {_exact(shortest)}; subtract "
-                "an origin from the times (count them from the first observation)"
+                f"{path} line {number}: float64 holds the time {text} only to {float(moved):.3g} s "
+                "(counted from the first observation), too coarse for intervals of "
+                f"{_exact(float(shortest))}"
             )
+    return offsets
 
 
 # A decimal number as people write it (and `nan`/`inf`, rejected later as not finite). Not Python's
@@ -913,6 +944,23 @@ def check_fit_memory(rows: int, available: int | None, path: str, model: str = "
         )
 
 
+def _from_origin(origin: str | None, offset: float) -> float:
+    """The double nearest the time `origin + offset` (`origin` as the file writes it, or None)."""
+    import decimal
+
+    return offset if origin is None else float(decimal.Decimal(origin) + decimal.Decimal(offset))
+
+
+def _distinct_labels(times: list[float]) -> list[str]:
+    """`times` with 6 significant digits, or as many more as it takes to tell neighbours apart
+    (knots at a Unix time all printed as 1.7e+09)."""
+    for digits in range(6, 18):
+        labels = [f"{t:.{digits}g}" for t in times]
+        if len(set(labels)) == len(set(times)):
+            return labels
+    return labels
+
+
 def _cmd_fit(args: argparse.Namespace) -> int:
     # Option errors before the file is read, as option errors (the library's would name the file).
     if args.knots is not None:
@@ -926,7 +974,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
                 f"argument --knots: must be at least {minimum} for --model {args.model}; "
                 f"got {args.knots}"
             )
-    times, quaternions = read_observations_csv(args.file)
+    origin, times, quaternions = read_observations_csv(args.file)
     check_fit_memory(times.shape[0], _memory_available(), args.file, args.model)
     _setup_jax("float64")
     import numpy as np
@@ -946,7 +994,8 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         "model": args.model,
         "frame": args.frame,
         "observations": int(times.shape[0]),
-        "t0": float(times[0]),  # q0 is the orientation at the first observation time, not at t = 0
+        # q0 is the orientation at the first observation time, not at t = 0
+        "t0": _from_origin(origin, float(times[0])),
         "q0": np.asarray(fit.q0, dtype=np.float64).tolist(),
         "residual_rms_deg": float(np.sqrt(np.mean(residuals**2))),
         "residual_max_deg": float(residuals.max()),
@@ -958,7 +1007,8 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         # hypot scales: sqrt(x² + y² + z²) overflows from |ω| ~ 1e154 and underflows below 1e-154.
         report["omega_norm"] = math.hypot(*omega.tolist())
     else:
-        report["knots"] = np.asarray(fit.omega.knots, dtype=np.float64).tolist()
+        offsets = np.asarray(fit.omega.knots, dtype=np.float64).tolist()
+        report["knots"] = [_from_origin(origin, k) for k in offsets]
         report["omega_at_knots"] = np.asarray(fit.omega.values, dtype=np.float64).tolist()
     _check_finite_results(
         {
@@ -983,10 +1033,13 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         )
     else:
         print(f"omega(t) at {len(report['knots'])} knots ({args.model}, {args.frame} frame):")
-        for t, (x, y, z) in zip(report["knots"], report["omega_at_knots"], strict=True):
-            print(f"  t = {t:<12.6g} omega = [{x:.6g}, {y:.6g}, {z:.6g}] rad/s")
+        labels = _distinct_labels(report["knots"])
+        if len(set(report["knots"])) < len(offsets):  # (far from zero: one double for several)
+            labels = [f"t0 + {label}" for label in _distinct_labels(offsets)]
+        for t, (x, y, z) in zip(labels, report["omega_at_knots"], strict=True):
+            print(f"  t = {t:<12} omega = [{x:.6g}, {y:.6g}, {z:.6g}] rad/s")
     print(
-        f"q0 = [{', '.join(f'{v:.9g}' for v in report['q0'])}] at t0 = {report['t0']!r} "
+        f"q0 = [{', '.join(f'{v:.9g}' for v in report['q0'])}] at t0 = {origin or repr(report['t0'])} "
         f"(the first observation)  residual rms "
         f"{report['residual_rms_deg']:.4g}°, max {report['residual_max_deg']:.4g}°, "
         f"{report['observations']} observations, converged: {report['converged']}"

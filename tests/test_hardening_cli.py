@@ -704,21 +704,70 @@ def _about_x(origin: str, interval: str) -> list[str]:
     return rows
 
 
-def test_fit_refuses_times_that_float64_cannot_hold(tmp_path, capsys):
-    """Times 0.3 s apart from 1e15 read as multiples of 0.125 (float64's spacing there): the fit
-    gave |ω| = 0.49855 instead of 0.5, converged, with nothing said (helper-49). Moved by more than
-    a thousandth of the shortest interval, a time is now a one-line error naming its line; Unix
-    times in seconds with millisecond steps still fit."""
-    path = _write(tmp_path / "far.csv", _about_x("1000000000000000", "0.3"))
+@pytest.mark.parametrize(
+    "origin, interval",
+    [
+        ("1000000000000000", "0.3"),  # doubles 0.125 apart: read as is, |ω| came out 0.49855
+        ("1000000000000000", "0.01"),  # all twelve read as one double: "times must increase"
+        ("1700000000", "0.0001"),  # Unix seconds at 10 kHz (doubles 2.4e-7 s apart): refused
+        ("1700000000", "0.001"),
+        ("1e15", "1"),
+        ("0", "0.3"),
+    ],
+)
+def test_fit_counts_far_times_exactly_from_the_first(tmp_path, capsys, origin, interval):
+    """Times far from zero are coarse in float64: 0.3 s steps from 1e15 read as multiples of 0.125
+    and fitted |ω| = 0.49855 instead of 0.5, converged, with nothing said (helper-49); then they
+    were refused, and so were Unix times in seconds at 10 kHz. Now the file's times are counted
+    from its first, exactly (in decimal), before they are rounded: the fit is the closed form's."""
+    import decimal
+
+    path = _write(tmp_path / "far.csv", _about_x(origin, interval))
+    status, out, err = _run(["fit", path, "--json"], capsys)
+    assert status == 0, err
+    report = json.loads(out)
+    np.testing.assert_allclose(report["omega"], [0.5, 0, 0], rtol=1e-9, atol=1e-9)
+    assert report["t0"] == float(decimal.Decimal(origin))
+    assert max(report["residual_max_deg"], 0) < 1e-6
+    # The time-varying models report their knots on the file's clock, printed apart.
+    status, out, err = _run(["fit", path, "--json", "--model", "piecewise_linear"], capsys)
+    assert status == 0, err
+    report = json.loads(out)
+    span = [decimal.Decimal(origin), decimal.Decimal(origin) + 11 * decimal.Decimal(interval)]
+    assert [report["knots"][0], report["knots"][-1]] == [float(span[0]), float(span[1])]
+    np.testing.assert_allclose(
+        report["omega_at_knots"], [[0.5, 0, 0]] * len(report["knots"]), atol=1e-6
+    )
+    status, out, err = _run(["fit", path, "--model", "piecewise_linear", "--knots", "3"], capsys)
+    assert status == 0, err
+    knot_lines = [line for line in out.splitlines() if line.startswith("  t = ")]
+    assert len({line.split("omega")[0] for line in knot_lines}) == 3, out
+    assert f"at t0 = {_about_x(origin, interval)[0].split(',')[0]} " in out
+
+
+def test_fit_times_too_coarse_even_from_the_first_are_refused(tmp_path, capsys):
+    """Intervals of 1e-12 s in a file spanning 1000 s: float64 holds 1000 s only to 1.1e-13."""
+    rows = [r.split(",", 1)[1] for r in _about_x("0", "1e-12")[:4]]
+    times = ["0", "1e-12", "2e-12", "1000.0000000000000301"]
+    path = _write(tmp_path / "span.csv", [f"{t},{q}" for t, q in zip(times, rows, strict=True)])
     status, out, err = _run(["fit", path], capsys)
     _assert_one_line_error(
-        status, out, err, "far.csv line 3", "1000000000000000.3", "0.05 s off", "subtract an origin"
+        status, out, err, "span.csv line 5", "1000.0000000000000301", "3.01e-14 s", "1e-12"
     )
-    for origin, interval in [("0", "0.3"), ("1700000000", "0.001"), ("1e15", "1")]:
-        path = _write(tmp_path / "near.csv", _about_x(origin, interval))
-        status, out, err = _run(["fit", path, "--json"], capsys)
-        assert status == 0, (origin, err)
-        np.testing.assert_allclose(json.loads(out)["omega"], [0.5, 0, 0], atol=1e-5)
+
+
+def test_fit_times_that_decrease_within_one_double_are_refused(tmp_path, capsys):
+    rows = [r.split(",", 1)[1] for r in _about_x("0", "0.01")[:3]]
+    times = ["1000000000000000.01", "1000000000000000.03", "1000000000000000.02"]
+    path = _write(tmp_path / "order.csv", [f"{t},{q}" for t, q in zip(times, rows, strict=True)])
+    status, out, err = _run(["fit", path], capsys)
+    _assert_one_line_error(
+        status,
+        out,
+        err,
+        "order.csv line 4",
+        "t = 1000000000000000.02 follows t = 1000000000000000.03",
+    )
 
 
 @pytest.mark.parametrize("interval, omega", [("e-160", 1e159), ("e+200", 1e-201)])
