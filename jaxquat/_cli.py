@@ -394,40 +394,65 @@ def read_observations_csv(path: str):
 
 def _rounded_alike(later: str, earlier: str) -> bool:
     """Whether the time `later` exceeds `earlier` though both read as the same double."""
+    return float(later) == float(earlier) and _decimal(later) > _decimal(earlier)
+
+
+def _decimal(text: str):
+    """The number `text` as an exact `decimal.Decimal`; one with an exponent beyond Decimal's range
+    (±10¹⁸) as the double it reads as (0: an infinite one was refused already)."""
     import decimal
 
-    return float(later) == float(earlier) and decimal.Decimal(later) > decimal.Decimal(earlier)
+    try:
+        return decimal.Decimal(text)
+    except decimal.InvalidOperation:
+        return decimal.Decimal(float(text))
+
+
+def _wide_context(digits: int):
+    """A `decimal.Context` of `digits` significant digits and no bound on the exponent."""
+    import decimal
+
+    return decimal.Context(prec=digits, Emin=decimal.MIN_EMIN, Emax=decimal.MAX_EMAX)
 
 
 def _times_hold(times: list[float]) -> bool:
     """Whether rounding to the nearest double moved no time by more than a thousandth of the
     shortest interval (a bound on half a unit in the last place at the largest |t|)."""
     shortest = min(b - a for a, b in zip(times, times[1:], strict=False))
-    return math.ulp(max(abs(times[0]), abs(times[-1]))) / 2 <= 1e-3 * shortest
+    return math.ulp(max(abs(times[0]), abs(times[-1]))) <= 2e-3 * shortest  # (ulp(0) / 2 is 0)
 
 
 def _offsets(path: str, texts: list[str], origin, lines: list[int]) -> list[float] | None:
     """The times `texts` counted from `origin` (a `decimal.Decimal`), each the double nearest the
-    exact offset (0.6 s per 10⁶ rows), or None if the last overflows. Raises `CommandLineError` when rounding moved one by more
-    than a thousandth of the shortest interval (a span ~10¹³ times the shortest interval): the fit
-    would be quietly off (0.3 s steps read as multiples of 0.125 fitted ω 0.3 % off)."""
+    exact offset (0.6 s per 10⁶ rows), or None if the last overflows. Raises `CommandLineError`
+    when rounding moved one by more than a thousandth of the shortest interval (a span ~10¹³ times
+    the shortest interval): the fit would be quietly off (0.3 s steps read as multiples of 0.125
+    fitted ω 0.3 % off)."""
     import decimal
 
-    context = decimal.Context(prec=60)  # the offsets are rounded once more, to 17 digits
-    exact = [context.subtract(decimal.Decimal(text), origin) for text in texts]
-    shortest = min(context.subtract(b, a) for a, b in zip(exact, exact[1:], strict=False))
+    # 60 digits: the offsets are rounded once more, to 17; two times that differ only beyond the
+    # 60th digit of their offsets (no double tells them apart) are refused below.
+    context = _wide_context(60)
+    exact = [context.subtract(_decimal(text), origin) for text in texts]
     offsets = [float(e) for e in exact]
     if not math.isfinite(offsets[-1]):
         return None
     if _times_hold(offsets):
         return offsets
+    intervals = [context.subtract(b, a) for a, b in zip(exact, exact[1:], strict=False)]
+    shortest = min(intervals)
+    if shortest <= 0:
+        k = intervals.index(shortest) + 1
+        raise CommandLineError(
+            f"{path} line {lines[k]}: float64 cannot tell the time {texts[k]} from the one "
+            f"before it, {texts[k - 1]} (counted from the first observation)"
+        )
     for text, offset, value, number in zip(texts, exact, offsets, lines, strict=True):
-        moved = abs(context.subtract(offset, decimal.Decimal(value)))
-        if moved > shortest / 1000:
+        moved = context.copy_abs(context.subtract(offset, decimal.Decimal(value)))
+        if moved > context.divide(shortest, 1000):
             raise CommandLineError(
-                f"{path} line {number}: float64 holds the time {text} only to {float(moved):.3g} s "
-                "(counted from the first observation), too coarse for intervals of "
-                f"{_exact(float(shortest))}"
+                f"{path} line {number}: float64 holds the time {text} only to {moved:.3g} s "
+                f"(counted from the first observation), too coarse for intervals of {shortest:.6g}"
             )
     return offsets
 
@@ -945,20 +970,29 @@ def check_fit_memory(rows: int, available: int | None, path: str, model: str = "
 
 
 def _from_origin(origin: str | None, offset: float) -> float:
-    """The double nearest the time `origin + offset` (`origin` as the file writes it, or None)."""
+    """The double nearest the time `origin + offset` (`origin` as the file writes it, or None). The
+    sum is exact (its digits are bounded by the origin's text and float64's exponents)."""
     import decimal
 
-    return offset if origin is None else float(decimal.Decimal(origin) + decimal.Decimal(offset))
+    if origin is None:
+        return offset
+    return float(_wide_context(decimal.MAX_PREC).add(_decimal(origin), decimal.Decimal(offset)))
 
 
-def _distinct_labels(times: list[float]) -> list[str]:
-    """`times` with 6 significant digits, or as many more as it takes to tell neighbours apart
-    (knots at a Unix time all printed as 1.7e+09)."""
-    for digits in range(6, 18):
-        labels = [f"{t:.{digits}g}" for t in times]
-        if len(set(labels)) == len(set(times)):
-            return labels
-    return labels
+def _first_time(origin: str | None, t0: float) -> str:
+    """t0 as the file wrote it (1e15 + 0.3 is 1000000000000000.25 as a double), unless long."""
+    return origin if origin is not None and len(origin) <= 40 else repr(t0)
+
+
+def _knot_labels(knots: list[float]) -> list[str]:
+    """Increasing `knots` with their spacing to 6 significant digits (at most 17 in all): at a Unix
+    time `:.6g` printed every knot as 1.7e+09."""
+    gap = min(b - a for a, b in zip(knots, knots[1:], strict=False))
+    top = max(abs(knots[0]), abs(knots[-1]))
+    digits = 17
+    if gap > 0 and top / gap < 1e11:
+        digits = 6 + max(0, math.ceil(math.log10(top / gap))) if top > 0 else 6
+    return [f"{t:.{digits}g}" for t in knots]
 
 
 def _cmd_fit(args: argparse.Namespace) -> int:
@@ -1009,6 +1043,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     else:
         offsets = np.asarray(fit.omega.knots, dtype=np.float64).tolist()
         report["knots"] = [_from_origin(origin, k) for k in offsets]
+        report["knots_from_t0"] = offsets  # (far from zero, doubles may not tell the knots apart)
         report["omega_at_knots"] = np.asarray(fit.omega.values, dtype=np.float64).tolist()
     _check_finite_results(
         {
@@ -1033,13 +1068,17 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         )
     else:
         print(f"omega(t) at {len(report['knots'])} knots ({args.model}, {args.frame} frame):")
-        labels = _distinct_labels(report["knots"])
-        if len(set(report["knots"])) < len(offsets):  # (far from zero: one double for several)
-            labels = [f"t0 + {label}" for label in _distinct_labels(offsets)]
+        knots = report["knots"]
+        gap = min(b - a for a, b in zip(knots, knots[1:], strict=False))
+        if max(abs(knots[0]), abs(knots[-1])) <= 1e4 * gap:
+            labels = _knot_labels(knots)
+        else:  # far from zero (say at a Unix time; one double may stand for several knots)
+            labels = [f"t0 + {label}" for label in _knot_labels(offsets)]
+        width = max(12, *map(len, labels))
         for t, (x, y, z) in zip(labels, report["omega_at_knots"], strict=True):
-            print(f"  t = {t:<12} omega = [{x:.6g}, {y:.6g}, {z:.6g}] rad/s")
+            print(f"  t = {t:<{width}} omega = [{x:.6g}, {y:.6g}, {z:.6g}] rad/s")
     print(
-        f"q0 = [{', '.join(f'{v:.9g}' for v in report['q0'])}] at t0 = {origin or repr(report['t0'])} "
+        f"q0 = [{', '.join(f'{v:.9g}' for v in report['q0'])}] at t0 = {_first_time(origin, report['t0'])} "
         f"(the first observation)  residual rms "
         f"{report['residual_rms_deg']:.4g}°, max {report['residual_max_deg']:.4g}°, "
         f"{report['observations']} observations, converged: {report['converged']}"

@@ -738,11 +738,64 @@ def test_fit_counts_far_times_exactly_from_the_first(tmp_path, capsys, origin, i
     np.testing.assert_allclose(
         report["omega_at_knots"], [[0.5, 0, 0]] * len(report["knots"]), atol=1e-6
     )
-    status, out, err = _run(["fit", path, "--model", "piecewise_linear", "--knots", "3"], capsys)
+    np.testing.assert_allclose(
+        report["knots_from_t0"], np.linspace(0, 11 * float(interval), len(report["knots"]))
+    )
+    status, out, err = _run(["fit", path, "--model", "piecewise_linear", "--knots", "5"], capsys)
     assert status == 0, err
-    knot_lines = [line for line in out.splitlines() if line.startswith("  t = ")]
-    assert len({line.split("omega")[0] for line in knot_lines}) == 3, out
+    # Each knot printed to 6 digits of its spacing, on the file's clock or from t0 when far.
+    labels = [line[6:].split("omega")[0].strip() for line in out.splitlines() if "omega =" in line]
+    origin_value = float(origin) if "t0 + " not in labels[1] else 0.0
+    printed = np.array([float(label.removeprefix("t0 + ")) - origin_value for label in labels])
+    spacing = 11 * float(interval) / 4
+    np.testing.assert_allclose(printed, spacing * np.arange(5), rtol=0, atol=1e-5 * spacing)
     assert f"at t0 = {_about_x(origin, interval)[0].split(',')[0]} " in out
+
+
+@pytest.mark.parametrize(
+    "times, message",
+    [
+        # An exponent beyond Decimal's range (±10¹⁸): the time reads as 0 (was an internal error).
+        (["0", "1e-99999999999999999999999", "1"], "line 3: times must increase, but t = 1e-"),
+        # Offsets that differ beyond their 60th digit: read as one double (was the library's
+        # "must be strictly increasing", naming no line).
+        (["0", "1", "1." + "0" * 66 + "1", "2"], "line 4: float64 cannot tell the time 1.0000"),
+        # Offsets below float64's range (were rounded to 0 by the decimal context and accepted).
+        (["0", "1e-2000000", "2e-2000000", "3e-2000000"], "line 3: float64 holds the time 1e-2"),
+    ],
+)
+def test_fit_times_beyond_decimal_or_float64_are_one_line_errors(tmp_path, capsys, times, message):
+    rows = [r.split(",", 1)[1] for r in _about_x("0", "0.5")[: len(times)]]
+    path = _write(tmp_path / "odd.csv", [f"{t},{q}" for t, q in zip(times, rows, strict=True)])
+    status, out, err = _run(["fit", path], capsys)
+    _assert_one_line_error(status, out, err, f"odd.csv {message}")
+
+
+def test_fit_reports_t0_and_knots_rounded_once(tmp_path, capsys):
+    """1e15 + 0.0625 + 1e-20 is nearer 1e15 + 0.125 than 1e15: 28-digit decimal sums rounded it
+    to the tie first, and then to 1e15 (helper-51)."""
+    rows = _about_x("1000000000000000.1", "0.3")
+    rows[0] = "1000000000000000.06250000000000000001," + rows[0].split(",", 1)[1]
+    path = _write(tmp_path / "tie.csv", rows)
+    status, out, err = _run(["fit", path, "--json"], capsys)
+    assert status == 0, err
+    assert json.loads(out)["t0"] == 1000000000000000.125
+    zero = _write(
+        tmp_path / "zero.csv",
+        [
+            "-1," + rows[0].split(",", 1)[1],
+            *(
+                f"{t},{q}"
+                for t, q in zip(
+                    ["0e99999999999999999999999", "1"],
+                    [r.split(",", 1)[1] for r in rows[1:3]],
+                    strict=True,
+                )
+            ),
+        ],
+    )
+    status, out, err = _run(["fit", zero, "--json"], capsys)
+    assert status == 0 and json.loads(out)["t0"] == -1.0, err
 
 
 def test_fit_times_too_coarse_even_from_the_first_are_refused(tmp_path, capsys):
