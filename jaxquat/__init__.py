@@ -113,6 +113,9 @@ from ._solvers import (
     kinematic_vector_field as kinematic_vector_field,
 )
 
+# The public names: everything imported above (for `from jaxquat import *` and introspection).
+__all__ = sorted(name for name in dir() if not name.startswith("_"))
+
 try:
     __version__ = _metadata.version("jaxquat")
 except _metadata.PackageNotFoundError:  # running from a source tree without install

@@ -62,12 +62,20 @@ _METHODS = ("euler", "midpoint", "cf4", "naive", "rk4")
 
 def _check_positive_masses(masses: Array) -> None:
     """Raise a `ValueError` for non-positive or non-finite masses (only when they are concrete; a NaN
-    mass once gave an all-NaN centre of mass and inertia without a word)."""
+    mass once gave an all-NaN centre of mass and inertia without a word), or subnormal ones: XLA on
+    CPU flushes those to zero, and masses of 1e-320 gave a NaN centre of mass (helper-52)."""
     if not is_tracer(masses):
         values = np.asarray(masses)
         bad = values[~(np.isfinite(values) & (values > 0))]
         if bad.size:
             raise ValueError(f"`masses` must be positive and finite; got {bad.flat[0]}.")
+        tiny = np.finfo(values.dtype).tiny if np.issubdtype(values.dtype, np.floating) else 0
+        small = values[values < tiny]
+        if small.size:
+            raise ValueError(
+                f"`masses` must be at least {values.dtype}'s smallest normal number {tiny:.3g} "
+                f"(XLA flushes smaller ones to zero); got {small.flat[0]:.3g}. Scale the masses up."
+            )
 
 
 def _check_point_masses(masses: ArrayLike, positions: ArrayLike):
@@ -301,13 +309,23 @@ def _apply_inertia(
 
 
 def _inverse_inertia(inertia: Array) -> Array:
-    """I⁻¹ as a matrix (by cofactors: rows' cross products over the determinant) or reciprocal moments."""
+    """I⁻¹ as a matrix or reciprocal moments.
+
+    A matrix is inverted by cofactors (rows' cross products over the determinant) of I/s, s its
+    largest entry: I⁻¹ = (I/s)⁻¹/s. Unscaled, the cofactors (∝ I²) and the determinant (∝ I³)
+    left float32's range from I ≈ 7e12 (I⁻¹ = 0: the body stopped turning) or below 1e-13 (NaN:
+    a milligram at a tenth of a millimetre; helper-52). s is held constant under differentiation:
+    the result does not depend on it.
+    """
     if not _is_matrix(inertia):
         return 1.0 / inertia
+    scale = jax.lax.stop_gradient(jnp.max(jnp.abs(inertia), axis=(-2, -1), keepdims=True))
+    scale = jnp.where(scale > 0, scale, 1)  # (a zero matrix, refused where concrete, stays NaN)
+    inertia = inertia / scale
     row0, row1, row2 = inertia[..., 0, :], inertia[..., 1, :], inertia[..., 2, :]
     cofactors = jnp.stack([cross(row1, row2), cross(row2, row0), cross(row0, row1)], axis=-1)
     det = jnp.sum(row0 * cross(row1, row2), axis=-1)
-    return cofactors / det[..., None, None]
+    return cofactors / det[..., None, None] / scale
 
 
 def _euler_rhs(omega: Array, inertia: Array, inverse: Array, torque: Array | None) -> Array:

@@ -629,6 +629,51 @@ def test_float32_in_float32_out():
     np.testing.assert_allclose(omegas[-1], w_ref[0], atol=1e-5)
 
 
+@pytest.mark.parametrize("scale", [1e13, 1e-14, 1e30, 1e-30])
+def test_float32_inertia_matrix_at_any_scale(scale):
+    """ω̇ = I⁻¹((Iω) × ω) does not change when I is scaled, nor does a deformable body's motion when
+    its masses and L are: the cofactor inverse overflowed to I⁻¹ = 0 from I ≈ 7e12 (the body stood
+    still) and gave NaN below 1e-13 in float32 (helper-52)."""
+    omega = np.array([1.0, 0.5, 0.2])
+    inertia = np.array([[2.0, 0.1, 0.0], [0.1, 3.0, 0.0], [0.0, 0.0, 4.0]])
+    expected = np.linalg.solve(inertia, np.cross(inertia @ omega, omega))  # float64, unscaled
+    f32 = functools.partial(jnp.asarray, dtype=jnp.float32)
+    np.testing.assert_allclose(
+        jq.euler_equations(f32(omega), f32(scale * inertia)), expected, rtol=2e-6
+    )
+    qs, _ = jq.simulate_rigid_body(
+        f32(Q0), f32(omega), f32(scale * inertia), 0.05, 40, save_every=40
+    )
+    reference, _ = jq.simulate_rigid_body(Q0, omega, inertia, 0.05, 40, save_every=40)
+    assert quat_distance(qs[-1], reference[-1]) < 1e-5
+    points = np.array([[1.0, 0, 0], [0, 1, 0], [0, 0, 1], [-1, -1, 0.3]])
+    masses, momentum = np.array([1.0, 2, 3, 4]), np.array([1.0, 0.5, -0.3])
+    body = functools.partial(
+        jq.simulate_deformable_body,
+        positions=lambda t: f32(points),
+        dt=0.05,
+        num_steps=40,
+        save="final",
+    )
+    q_scaled = body(f32(scale * masses), q0=f32(Q0), angular_momentum=f32(scale * momentum))[0]
+    q_unit = body(masses, q0=Q0, angular_momentum=momentum)[0]
+    assert quat_distance(q_scaled, q_unit) < 1e-5
+
+
+def test_inertia_matrix_gradient_matches_finite_differences():
+    # The inverse is taken of I / max|I| with the scale held constant under differentiation.
+    omega = jnp.array([1.0, 0.5, 0.2])
+    inertia = jnp.array([[2.0, 0.1, -0.2], [0.1, 3.0, 0.05], [-0.2, 0.05, 4.0]])
+    for scale in (1.0, 1e-20, 1e20):
+        check_grads(
+            lambda i: jq.euler_equations(omega, (i + i.T) / 2),
+            (scale * inertia,),
+            order=1,
+            modes=("fwd", "rev"),
+            eps=1e-6 * scale,
+        )
+
+
 # --------------------------------------------------------------------------------------------------
 # Acceptance 6: errors
 
@@ -661,6 +706,16 @@ def test_invalid_inputs_raise():
             jq.inertia_tensor(masses, points)
         with pytest.raises(ValueError, match="`masses` must be positive and finite"):
             jq.simulate_deformable_body(masses, lambda t, p=points: p * (1.0 + t), Q0, 0.1, 2)
+    # Subnormal masses: XLA flushes them to zero (a NaN centre of mass; NumPy's LinAlgError from
+    # the deformable body's collinearity check).
+    points = jnp.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    for masses in (jnp.full(3, 1e-320), jnp.array([1.0, 1e-40, 1.0], jnp.float32)):
+        match = "`masses` must be at least float(64|32)'s smallest normal number.*got 1e-(320|40)"
+        with pytest.raises(ValueError, match=match):
+            jq.center_of_mass(masses, points.astype(masses.dtype))
+        with pytest.raises(ValueError, match=match):
+            jq.simulate_deformable_body(masses, lambda t, p=points: p * (1.0 + t), Q0, 0.1, 2)
+    np.testing.assert_allclose(jq.center_of_mass(jnp.full(3, 3e-308), points), [1 / 3] * 3)
     with pytest.raises(ValueError, match="positions"):
         jq.inertia_tensor(jnp.ones(2), jnp.ones((2, 2)))
     with pytest.raises(ValueError, match="velocities"):

@@ -376,3 +376,15 @@ def test_omega_returning_a_list_is_an_array_and_a_string_is_an_error(method):
     np.testing.assert_allclose(got, want, atol=1e-15)
     with pytest.raises(ValueError, match=r"`omega\(t, q\)` must be an array of numbers; got str"):
         jq.integrate(_I, lambda t, q: "abc", 0.1, 5, method=method)
+
+
+def test_public_names_are_listed_and_documented():
+    """`jaxquat.__all__` lists the public API (helper-52 found none); each name has a docstring
+    and `from jaxquat import *` brings exactly these."""
+    names = {n for n in dir(jq) if not n.startswith("_")}
+    assert jq.__all__ == sorted(names)
+    assert {"integrate", "rotate", "corrected_vector_field", "simulate_deformable_body"} <= names
+    namespace: dict = {}
+    exec("from jaxquat import *", namespace)
+    assert {n for n in namespace if not n.startswith("_")} == names
+    assert [n for n in jq.__all__ if not (getattr(jq, n).__doc__ or "").strip()] == []
