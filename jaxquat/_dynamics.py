@@ -47,6 +47,8 @@ from ._numerics import (
     check_trailing,
     cross,
     is_tracer,
+    power_of_two_times,
+    prescale,
     reusable_callable,
     sum_squares,
 )
@@ -126,15 +128,25 @@ def center_of_mass(masses: ArrayLike, positions: ArrayLike) -> Array:
     Masses are checked to be positive when they are concrete; under `jit` they are not checked.
     """
     masses, positions = _check_point_masses(masses, positions)
+    # Masses at scale 1 (`prescale`; c does not depend on their scale): Σ mᵢxᵢ overflowed float32
+    # for masses 1e20 at 1e20 and underflowed to 0 for 1e-20 at 1e-20 (helper-53).
+    masses = prescale(masses, limit=0)[0]
     return _moment(masses, positions) / jnp.sum(masses, axis=-1, keepdims=True)
 
 
 def _point_inertia(masses: Array, relative: Array) -> Array:
-    """Σᵢ mᵢ (|rᵢ|² E − rᵢ rᵢᵀ) for positions `relative` to the reference point."""
+    """Σᵢ mᵢ (|rᵢ|² E − rᵢ rᵢᵀ) for positions `relative` to the reference point.
+
+    Masses and positions are brought to scale 1 first (exact powers of two, `prescale`) and the sum
+    scaled back: |rᵢ|² underflowed float32 from |r| ≈ 1e-19 (I = 0 for masses 1e20 at 1e-20) and
+    overflowed from 1e19 (helper-53)."""
+    masses, e_mass = prescale(masses, limit=0)
+    relative, e_length = prescale(relative, axes=(-2, -1), limit=0)
     eye = jnp.eye(3, dtype=relative.dtype)
     outer = relative[..., :, None] * relative[..., None, :]
     per_point = sum_squares(relative)[..., None, None] * jnp.broadcast_to(eye, outer.shape) - outer
-    return jnp.sum(masses[..., None, None] * per_point, axis=-3)
+    unit = jnp.sum(masses[..., None, None] * per_point, axis=-3)
+    return power_of_two_times(unit, (e_mass + 2 * e_length)[..., None, None])
 
 
 def inertia_tensor(
@@ -222,7 +234,11 @@ def principal_axes(inertia: ArrayLike) -> tuple[Array, Array]:
     """
     inertia = check_matrix(inertia, "inertia")
     inertia = _check_inertia(inertia, "inertia", semidefinite=True)
-    moments, axes = jnp.linalg.eigh(at_least_float32(inertia))  # (no half-precision eigh)
+    # At scale 1 (exactly, `prescale`): JAX's eigh derivative forms 1 + λⱼ − λᵢ, which rounds to
+    # 0 for moments past 2²⁴ in float32 (NaN gradients for a space station's 1e8 kg m²; helper-53).
+    unit, e = prescale(at_least_float32(inertia), axes=(-2, -1), limit=0)
+    moments, axes = jnp.linalg.eigh(unit)  # (no half-precision eigh)
+    moments = power_of_two_times(moments, e[..., None])
     # eigh's signs are LAPACK's whim: for a diagonal inertia an off-diagonal change of 1e-7 turned
     # q from the identity to a half-turn. Each of the first two axes is signed so that its largest
     # component is positive (continuous wherever that component is unique), the third completes a
@@ -308,28 +324,46 @@ def _apply_inertia(
     return inertia * vector
 
 
-def _inverse_inertia(inertia: Array) -> Array:
-    """I⁻¹ as a matrix or reciprocal moments.
+def _unit_inertia(inertia: Array) -> tuple[Array, Array]:
+    """(J, e) with I = J·2ᵉ and J's largest entry in [½, 1), exactly (`prescale`).
 
-    A matrix is inverted by cofactors (rows' cross products over the determinant) of I/s, s its
-    largest entry: I⁻¹ = (I/s)⁻¹/s. Unscaled, the cofactors (∝ I²) and the determinant (∝ I³)
-    left float32's range from I ≈ 7e12 (I⁻¹ = 0: the body stopped turning) or below 1e-13 (NaN:
-    a milligram at a tenth of a millimetre; helper-52). s is held constant under differentiation:
-    the result does not depend on it.
+    Euler's equations do not depend on the inertia's scale, ω̇ = J⁻¹(τ·2⁻ᵉ + (Jω) × ω), but their
+    intermediates did: a cofactor inverse (∝ I², over a determinant ∝ I³) left float32's range
+    from I ≈ 7e12 (I⁻¹ = 0: the body stopped turning) or below 1e-13 (NaN: a milligram at a tenth
+    of a millimetre; helper-52), and (Iω) × ω underflowed for a float32 nanoparticle (I ≈ 1e-32,
+    |ω| ≈ 1e-3: ω̇ 93 % off; helper-53). Bit for bit the unscaled result where that is in range.
     """
-    if not _is_matrix(inertia):
-        return 1.0 / inertia
-    scale = jax.lax.stop_gradient(jnp.max(jnp.abs(inertia), axis=(-2, -1), keepdims=True))
-    scale = jnp.where(scale > 0, scale, 1)  # (a zero matrix, refused where concrete, stays NaN)
-    inertia = inertia / scale
-    row0, row1, row2 = inertia[..., 0, :], inertia[..., 1, :], inertia[..., 2, :]
+    return prescale(inertia, axes=(-2, -1) if _is_matrix(inertia) else (-1,), limit=0)
+
+
+def _unit_inverse(unit: Array) -> Array:
+    """J⁻¹ for a `_unit_inertia` J: by cofactors (rows' cross products over the determinant) for a
+    matrix, reciprocals for moments."""
+    if not _is_matrix(unit):
+        return 1.0 / unit
+    row0, row1, row2 = unit[..., 0, :], unit[..., 1, :], unit[..., 2, :]
     cofactors = jnp.stack([cross(row1, row2), cross(row2, row0), cross(row0, row1)], axis=-1)
     det = jnp.sum(row0 * cross(row1, row2), axis=-1)
-    return cofactors / det[..., None, None] / scale
+    return cofactors / det[..., None, None]
+
+
+def _inverse_inertia(inertia: Array) -> Array:
+    """I⁻¹ as a matrix or reciprocal moments, for any I the dtype holds (`_unit_inertia`)."""
+    unit, e = _unit_inertia(inertia)
+    return power_of_two_times(_unit_inverse(unit), -e[(...,) + (None,) * (unit.ndim - e.ndim)])
+
+
+def _scaled_torque(torque: Array | None, e: Array) -> Array | None:
+    """τ·2⁻ᵉ, the torque for `_euler_rhs` with a `_unit_inertia` J = I·2⁻ᵉ (e of the inertia's
+    batch shape, which broadcasts against the torque's)."""
+    if torque is None:
+        return None
+    e = -e[..., None]
+    return power_of_two_times(torque, e.reshape((1,) * (torque.ndim - e.ndim) + e.shape))
 
 
 def _euler_rhs(omega: Array, inertia: Array, inverse: Array, torque: Array | None) -> Array:
-    """ω̇ = I⁻¹(τ + (Iω) × ω) with a precomputed I⁻¹.
+    """ω̇ = I⁻¹(τ + (Iω) × ω) with a precomputed I⁻¹ (called with `_unit_inertia`'s J, J⁻¹ and τ·2⁻ᵉ).
 
     For principal moments the gyroscopic term is written (I₂ − I₃) ω₂ ω₃ and cyclic, so it is exactly
     0 about the axis of an axisymmetric body (I₂ = I₃): in the cross product form I₂ω₂ω₃ − I₃ω₃ω₂,
@@ -373,7 +407,8 @@ def euler_equations(
         torque = check_trailing(torque, 3, "torque")
         named.append((torque, 1, "torque"))
     broadcast_batch(*named)  # only checks that the batch axes broadcast (naming the arguments)
-    return _euler_rhs(omega_body, inertia, _inverse_inertia(inertia), torque)
+    unit, e = _unit_inertia(inertia)
+    return _euler_rhs(omega_body, unit, _unit_inverse(unit), _scaled_torque(torque, e))
 
 
 def kinetic_energy(omega_body: ArrayLike, inertia: ArrayLike) -> Array:
@@ -400,7 +435,8 @@ def kinetic_energy(omega_body: ArrayLike, inertia: ArrayLike) -> Array:
 
 def _rigid_body_field(inertia: Array, torque, frame: str):
     """The field (t, q, ω_b) → (ω_b, ω̇_b) for a body-frame Lie step; `torque` in `frame`."""
-    inverse = _inverse_inertia(inertia)
+    unit, e = _unit_inertia(inertia)
+    inverse = _unit_inverse(unit)
 
     def field(t, q, omega_body):
         if torque is None:
@@ -410,7 +446,7 @@ def _rigid_body_field(inertia: Array, torque, frame: str):
         else:
             omega = rotate_unchecked(omega_body, q)
             tau = rotate_unchecked(_call_torque(torque, t, q, omega), conjugate(q))
-        return omega_body, _euler_rhs(omega_body, inertia, inverse, tau)
+        return omega_body, _euler_rhs(omega_body, unit, inverse, _scaled_torque(tau, e))
 
     return field
 

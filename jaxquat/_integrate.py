@@ -271,8 +271,10 @@ def _lie_parts(
             )
         f1, f2 = _stage_rates(field, t, h, q, _STAGE_FRACTIONS["magnus4"])
         # Left action (world): [A₂, A₁] with A = ½ω̃ gives ω₂ × ω₁; right action (body): ω₁ × ω₂.
-        commutator = cross(f2, f1) if frame == "world" else cross(f1, f2)
-        phi = (0.5 * hq) * (f1 + f2) + ((_SQRT3 / 12.0) * hq * hq) * commutator
+        # h ω₁ × h ω₂, not h²·(ω₁ × ω₂): ω₁ × ω₂ overflowed float32 from |ω| ≈ 2e19 with h|ω| ≈ 1.
+        g1, g2 = hq * f1, hq * f2
+        commutator = cross(g2, g1) if frame == "world" else cross(g1, g2)
+        phi = 0.5 * (g1 + g2) + (_SQRT3 / 12.0) * commutator
         return (phi,), None
     if method == "magnus6":
         if x is not None:

@@ -75,7 +75,9 @@ def corrected_rate(q: ArrayLike, omega: ArrayLike, dt: ArrayLike, *, frame: str 
     omega = check_trailing(omega, 3, "omega")
     dt = as_float_array(dt, "dt")
     q, omega, dt = broadcast_batch((q, 1, "q"), (omega, 1, "omega"), (dt, 0, "dt"))
-    factor = tan_half_over(sum_squares(omega) * dt * dt)
+    # θ² as |ω dt|², not |ω|²·dt²: |ω|² left float32's range from |ω| ≈ 1.8e19 (or 1e-19) while θ
+    # was 1 (helper-53).
+    factor = tan_half_over(sum_squares(omega * dt[..., None]))
     return _apply(q, factor[..., None] * omega, frame)
 
 

@@ -58,7 +58,9 @@ def rotate(v: ArrayLike, q: ArrayLike, center: ArrayLike | None = None) -> Array
         v = v - center
     else:
         v, q = broadcast_batch((v, 1, "v"), (q, 1, "q"))
-    out = rotate_unchecked(v, prescale(q)[0])
+    # q at scale 1 whatever |v|: the formula's cross(u, cross(u, v)) is |q|²·|v| before its 2/|q|²
+    # (float32 rotate([1e30, 0, 0], [1e5, 0, 0, 1e5]) overflowed; helper-53).
+    out = rotate_unchecked(v, prescale(q, limit=0)[0])
     if center is not None:
         out = out + center
     return out
