@@ -847,9 +847,15 @@ def _start(times, observed, weights, knots, *, model, frame):
         starts = jax.vmap(through)(medians)  # by duration, by count
         losses = jax.vmap(loss)(starts)  # (one copy of the model to compile)
         return jnp.where(losses[1] < losses[0], starts[1], starts[0])
-    # The curve is linear in its values: its basis functions are the curve through I_K.
+    # The curve is linear in its values: its basis functions are the curve through I_K. An
+    # interval's rate carries noise σ/Δt, so intervals shorter than the median count in proportion
+    # to their duration (longer ones, which may hide a turn past π, no more than the median's): one
+    # interval of 1 ms among 25 over 6 s, with 0.01 rad of noise, pulled the start to a local
+    # minimum of loss 6.4 instead of 0.003, converged=True, differently for times in ms (helper-53).
     basis = AngularVelocityCurve.through(knots, jnp.eye(knots.shape[0], dtype=rates.dtype), model)
-    rows = valid[:, None].astype(rates.dtype)
+    durations = jnp.where(valid, durations, 0)
+    typical = _weighted_median(durations[:, None], valid.astype(rates.dtype))[0]
+    rows = jnp.minimum(durations / jnp.where(typical > 0, typical, 1), 1)[:, None]
     return jnp.linalg.lstsq(rows * basis(times[0] + midpoints), rows * rates)[0]
 
 
