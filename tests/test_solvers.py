@@ -971,3 +971,35 @@ def test_magnus_refuses_an_omega_that_reads_q_through_a_global_reference():
     got = jq.integrate(q0, read_only, 0.05, 4, method="magnus4", save="final")
     expected = jq.integrate(q0, read_only, 0.05, 4, method="cf4", save="final")
     np.testing.assert_allclose(got, expected, atol=1e-6)
+
+
+def test_normalized_euler_refuses_steps_other_than_the_corrected_fields_dt():
+    """The seed's recipe is exact for steps of dt only: a last step clipped to t1 = 1.05 (or
+    uneven StepTo steps) turned the body 0.074 rad too little at |ω| = 10, silently (helper-54).
+    Steps of dt, forwards, backwards or far from t = 0, under jit and vmap, still run exactly."""
+    from helpers import quat_distance
+    from scipy.spatial.transform import Rotation
+
+    omega, h = jnp.array([0.0, 0.0, 10.0]), 0.1
+    term = diffrax.ODETerm(jq.corrected_vector_field(omega, h))
+    solver = jq.NormalizedEuler()
+    match = "NormalizedEuler: a step t1 - t0 differs from the `dt` of its corrected_vector_field"
+    with pytest.raises(Exception, match=match):
+        diffrax.diffeqsolve(term, solver, 0.0, 1.05, h, jq.identity())
+    uneven = diffrax.StepTo(jnp.array([0.0, 0.1, 0.25, 0.3]))
+    with pytest.raises(Exception, match=match):
+        diffrax.diffeqsolve(term, solver, 0.0, 0.3, None, jq.identity(), stepsize_controller=uneven)
+    for t0, t1, dt0 in ((0.0, 1.0, h), (1.0, 0.0, -h), (1000.0, 1003.0, h)):
+        sol = diffrax.diffeqsolve(term, solver, t0, t1, dt0, jq.identity())
+        expected = Rotation.from_rotvec(np.asarray(omega) * (t1 - t0)).as_quat()[[3, 0, 1, 2]]
+        assert quat_distance(sol.ys[-1], expected) < 1e-12
+
+    @jax.jit
+    @jax.vmap
+    def final(rate):
+        field = diffrax.ODETerm(jq.corrected_vector_field(rate * omega, h))
+        return diffrax.diffeqsolve(field, solver, 0.0, 1.0, h, jq.identity()).ys[-1]
+
+    rates = jnp.array([0.5, 1.0, 2.0])
+    expected = Rotation.from_rotvec(np.outer(np.asarray(rates), omega)).as_quat()[:, [3, 0, 1, 2]]
+    assert quat_distance(final(rates), expected) < 1e-12
