@@ -26,7 +26,8 @@ default `RecursiveCheckpointAdjoint`; forward mode (`jax.jacfwd`, `jax.jvp`) nee
 tangents through). Both give the same derivatives. `diffrax.BacksolveAdjoint` (RK-type solvers)
 differentiates the ODE, which keeps |q0|, and cannot see the first step normalising a non-unit q0:
 it returns the gradient at q0/|q0| without the normalisation's Jacobian (wrong by 0.77 in a test
-where |q0| = 1.3). If q0 may be off the sphere, differentiate through `jaxquat.normalize(q0)`.
+where |q0| = 1.3; at a unit q0 its tangent part is right but it keeps a radial part, 1.18 in one case,
+which the other adjoints project out). Differentiate through `jaxquat.normalize(q0)`.
 """
 
 from __future__ import annotations

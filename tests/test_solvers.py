@@ -493,6 +493,17 @@ def test_backsolve_adjoint_with_a_non_unit_q0_needs_normalize_inside_the_gradien
     unnormalised = jax.grad(solved)(q0, False)
     np.testing.assert_allclose(unnormalised, jax.grad(flow)(q0 / 1.3), rtol=0, atol=1e-10)
     assert float(jnp.max(jnp.abs(unnormalised - exact))) > 0.1  # what the docstring warns of
+    # At a unit q0 the tangent part is right, but a radial part remains (gradient steps leave the
+    # sphere) unless q0 is normalised inside, as the README says (helper-54).
+    unit = q0 / 1.3
+    exact = jax.grad(lambda q: flow(jq.normalize(q)))(unit)
+    assert abs(float(exact @ unit)) < 1e-12
+    right = jax.grad(solved)(unit, True)
+    np.testing.assert_allclose(right, exact, rtol=0, atol=1e-10 * float(jnp.max(jnp.abs(exact))))
+    unnormalised = jax.grad(solved)(unit, False)
+    assert abs(float(unnormalised @ unit)) > 0.1
+    tangent = unnormalised - (unnormalised @ unit) * unit
+    np.testing.assert_allclose(tangent, exact, rtol=0, atol=1e-10 * float(jnp.max(jnp.abs(exact))))
 
 
 @pytest.mark.parametrize("dtype, bound", [(jnp.float64, 5e-14), (jnp.float32, 2e-5)])
