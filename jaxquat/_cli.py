@@ -984,14 +984,15 @@ def _first_time(origin: str | None, t0: float) -> str:
     return origin if origin is not None and len(origin) <= 40 else repr(t0)
 
 
-def _knot_labels(knots: list[float]) -> list[str]:
-    """Increasing `knots` with their spacing to 6 significant digits (at most 17 in all): at a Unix
-    time `:.6g` printed every knot as 1.7e+09."""
+def _knot_labels(knots: list[float], offsets: list[float]) -> list[str]:
+    """Increasing `knots` with their spacing to 6 significant digits: at a Unix time `:.6g` printed
+    every knot as 1.7e+09. Far from zero (beyond 10⁴ spacings, where one double may stand for
+    several knots) they are written `t0 + offset` instead."""
     gap = min(b - a for a, b in zip(knots, knots[1:], strict=False))
     top = max(abs(knots[0]), abs(knots[-1]))
-    digits = 17
-    if gap > 0 and top / gap < 1e11:
-        digits = 6 + max(0, math.ceil(math.log10(top / gap))) if top > 0 else 6
+    if not top <= 1e4 * gap and knots is not offsets:
+        return [f"t0 + {label}" for label in _knot_labels(offsets, offsets)]
+    digits = 6 + max(0, math.ceil(math.log10(top / gap))) if top > 0 else 6
     return [f"{t:.{digits}g}" for t in knots]
 
 
@@ -1068,12 +1069,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         )
     else:
         print(f"omega(t) at {len(report['knots'])} knots ({args.model}, {args.frame} frame):")
-        knots = report["knots"]
-        gap = min(b - a for a, b in zip(knots, knots[1:], strict=False))
-        if max(abs(knots[0]), abs(knots[-1])) <= 1e4 * gap:
-            labels = _knot_labels(knots)
-        else:  # far from zero (say at a Unix time; one double may stand for several knots)
-            labels = [f"t0 + {label}" for label in _knot_labels(offsets)]
+        labels = _knot_labels(report["knots"], offsets)
         width = max(12, *map(len, labels))
         for t, (x, y, z) in zip(labels, report["omega_at_knots"], strict=True):
             print(f"  t = {t:<{width}} omega = [{x:.6g}, {y:.6g}, {z:.6g}] rad/s")
