@@ -611,6 +611,37 @@ def test_euler_equations_component_form(getkey):
     )
 
 
+@pytest.mark.parametrize(
+    ("omega_shape", "inertia_shape", "torque_shape"),
+    [
+        ((3,), (3,), (5, 3)),  # the torque has more batch axes than ω and the inertia
+        ((5, 3), (3,), (3,)),  # the torque has fewer
+        ((3,), (5, 1, 3), (3,)),  # principal moments with batch axes of their own
+        ((5, 3), (2, 1, 3, 3), (5, 3)),  # a batch of full inertias
+        ((3,), (2, 1, 3, 3), (5, 3)),
+    ],
+)
+def test_euler_equations_broadcasts_every_argument(
+    getkey, omega_shape, inertia_shape, torque_shape
+):
+    # The suite runs with `jax_numpy_rank_promotion='raise'`, under which these raised before.
+    omega = np.asarray(jax.random.normal(getkey(), omega_shape))
+    torque = np.asarray(jax.random.normal(getkey(), torque_shape))
+    if inertia_shape[-2:] == (3, 3):
+        a = np.asarray(jax.random.normal(getkey(), inertia_shape))
+        inertia = a @ np.swapaxes(a, -1, -2) + np.eye(3)
+        matrix = inertia
+    else:
+        inertia = np.asarray(1.0 + jax.random.uniform(getkey(), inertia_shape))
+        matrix = inertia[..., None, :] * np.eye(3)
+    momentum = np.einsum("...ij,...j->...i", matrix, omega)
+    rhs = torque + np.cross(momentum, omega)
+    expected = np.linalg.solve(matrix, rhs[..., None])[..., 0]
+    got = jq.euler_equations(omega, inertia, torque)
+    assert got.shape == expected.shape
+    np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-13)
+
+
 def test_float32_in_float32_out():
     q0 = jnp.asarray(Q0, jnp.float32)
     omega0 = jnp.asarray(OMEGA0S[0], jnp.float32)
