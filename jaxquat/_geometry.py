@@ -25,6 +25,7 @@ from ._numerics import (
     cross,
     eager_jit,
     is_tracer,
+    prescale,
     scaled_norm,
     sum_squares,
     top_eigenvector,
@@ -294,6 +295,9 @@ def mean(
                 f"`weights` must broadcast to the batch shape {tuple(q.shape[:-1])} of `q`; "
                 f"got shape {tuple(weights.shape)}."
             ) from e
+        # The mean does not depend on the weights' scale: brought into range by a power of two over
+        # the averaged axes (float64 weights of 1e308 overflowed the moment, and gave (0, 0, 0, 1)).
+        weights = prescale(weights, axes=axis)[0]
         total = jnp.sum(weights, axis=axis)
         if not is_tracer(weights) and bool(jnp.any(total == 0)):
             values = np.asarray(total)

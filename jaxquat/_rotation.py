@@ -354,7 +354,9 @@ def to_euler(q: ArrayLike, seq: str) -> Array:
     A direct, general and computationally efficient method", PLoS ONE 17(11): e0276302, as SciPy
     implements it, except that the Tait–Bryan middle angle comes from its sine and cosine: SciPy
     subtracts π/2 from a proper-Euler angle, an absolute error of ~eps·π/4 (6e-8 rad in float32,
-    all of an angle below ~1e-7), where here small angles keep their relative accuracy.
+    all of an angle below ~1e-7); here the sine's two products cancel for small angles, so the
+    error is absolute too but smaller, a fraction of eps (at most 1.5e-8 rad in float32 over 3,000
+    random middle angles below 1e-6, against exact values from mpmath).
     The first and third angles lie in [−π, π]; the middle one in [0, π] for proper Euler sequences
     (`zxz`, …) and in [−π/2, π/2] for Tait–Bryan ones (`xyz`, …). Within 1e-7 of gimbal lock
     (middle angle 0 or π; ±π/2 for Tait–Bryan; at π, in float32, within 4π·eps ≈ 1.5e-6, the

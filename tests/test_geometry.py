@@ -413,6 +413,22 @@ def test_smooth_squared_angle_of_the_docstring_has_hessian_two_at_coincidence():
         assert abs(float(jnp.sqrt(squared(r))) - float(jnp.linalg.norm(r))) <= 1e-15
 
 
+def test_mean_of_huge_weights_matches_scipy():
+    """The mean does not depend on the weights' scale, but float64 weights of 1e308 overflowed the
+    moment Σ wᵢ qᵢ qᵢᵀ: NaN, or for three rotations (0, 0, 0, 1), silently (SciPy overflows too:
+    the reference is SciPy's mean with the weights divided by 1e308)."""
+    r = Rotation.from_quat(np.asarray(random_unit(jax.random.key(61), (10,))), scalar_first=True)
+    q = r.as_quat(scalar_first=True)
+    for weights in [np.full(10, 1e308), np.linspace(1e308, 0.0, 10)]:
+        expected = r.mean(weights / 1e308).as_quat(scalar_first=True)
+        assert_quat_close(jq.mean(q, weights), expected, atol=1e-14)
+        assert_quat_close(jax.jit(jq.mean)(q, weights), expected, atol=1e-14)
+    # float32: 400 weights of 1e37 sum past float32's largest number.
+    tiled = np.tile(q, (40, 1)).astype(np.float32)
+    expected = r.mean().as_quat(scalar_first=True)
+    assert_quat_close(jq.mean(tiled, np.full(400, 1e37, np.float32)), expected, atol=1e-6)
+
+
 def test_mean_of_non_unit_quaternions_matches_scipy():
     """SciPy normalises every input; a quaternion's length must not act as a weight."""
     rng = np.random.default_rng(8)
