@@ -1196,6 +1196,38 @@ def test_fit_refuses_a_file_too_large_for_the_memory(tmp_path, capsys, monkeypat
     assert status == 0, err
 
 
+def test_simulate_refuses_more_bodies_than_the_memory_holds(tmp_path, capsys, monkeypatch):
+    """200,000,000 bodies on a 23 GB machine: the kernel killed the process after 160 s (exit 137,
+    nothing on stderr); each body takes at least ~175 B on the CPU."""
+    from jaxquat import _cli
+
+    _cli.check_simulate_memory(10_000_000, 3 * 2**30)  # fits (2.0 GB measured)
+    _cli.check_simulate_memory(10**12, None)  # unknown: no check
+    with pytest.raises(_cli.CommandLineError, match="out of memory .*use fewer --bodies"):
+        _cli.check_simulate_memory(200_000_000, 22 * 2**30)
+    argv = ["simulate", "--bodies", 100, "--steps", 2, "--no-progress", "--output", tmp_path]
+    least = 100 * _cli._SIMULATE_MIN_BYTES_PER_BODY
+    monkeypatch.setattr(_cli, "_memory_available", lambda: least - 1)
+    status, out, err = _run(argv, capsys)
+    _assert_one_line_error(status, out, err, "jaxquat: error: out of memory", "use fewer --bodies")
+    monkeypatch.setattr(_cli, "_memory_available", lambda: least)
+    status, out, err = _run(argv, capsys)
+    assert status == 0, err
+
+
+def test_demo_out_of_memory_advises_only_its_own_options(tmp_path, capsys, monkeypatch):
+    """The advice named --chunk-size and --save-every, which demo does not have."""
+    from jaxquat import _cli
+
+    def exhausted(*args, **kwargs):
+        raise MemoryError()
+
+    monkeypatch.setattr(_cli, "run_demo", exhausted)
+    status, out, err = _run(["demo", "--bodies", 10, "--output", tmp_path / "d.png"], capsys)
+    _assert_one_line_error(status, out, err, "out of memory", "use fewer --bodies")
+    assert "--chunk-size" not in err and "--save-every" not in err
+
+
 def test_memory_available_reads_proc_meminfo():
     from jaxquat import _cli
 
