@@ -953,14 +953,21 @@ def fit_memory_needed(rows: int, model: str = "constant") -> int:
 # without a word (200,000,000 bodies: SIGKILL after 160 s at 24 GB, exit status 137, nothing on
 # stderr).
 _SIMULATE_MIN_BYTES_PER_BODY = 160
+# `demo` keeps 41 saved float32 states of every body (656 B) besides the ensemble's own: 2,000,000
+# bodies peaked 4.7 GB above a 10-body demo, ~2,430 B a body; rounded down the same way (30,000,000
+# bodies passed the 160 B check and were killed).
+_DEMO_MIN_BYTES_PER_BODY = 1024
 
 
-def check_simulate_memory(bodies: int, available: int | None) -> None:
+def check_simulate_memory(
+    bodies: int, available: int | None, per_body: int = _SIMULATE_MIN_BYTES_PER_BODY
+) -> None:
     """Raise the one-line "out of memory" `CommandLineError` when `bodies` bodies need more than
-    `available` bytes on the CPU even at the least memory a body takes (None: unknown, no check)."""
+    `available` bytes on the CPU even at the least memory a body takes, `per_body` bytes (None:
+    unknown, no check)."""
     if available is None:
         return
-    needed = _SIMULATE_MIN_BYTES_PER_BODY * bodies
+    needed = per_body * bodies
     if needed > available:
         raise CommandLineError(
             f"out of memory ({bodies:,} bodies need at least {needed / 1e9:.1f} GB, "
@@ -1241,6 +1248,8 @@ def run_demo(*, bodies: int, steps: int, output: str, seed: int, progress: bool)
     import jax
     import numpy as np
 
+    if jax.devices()[0].platform == "cpu":  # the bodies live in the machine's memory
+        check_simulate_memory(bodies, _memory_available(), _DEMO_MIN_BYTES_PER_BODY)
     result, spread, drift = _demo_ensemble(bodies, steps, seed, progress)
     spread_deg = np.degrees(np.asarray(spread, dtype=np.float64))
     times = np.asarray(result.times)

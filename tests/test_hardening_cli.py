@@ -1213,6 +1213,12 @@ def test_simulate_refuses_more_bodies_than_the_memory_holds(tmp_path, capsys, mo
     monkeypatch.setattr(_cli, "_memory_available", lambda: least)
     status, out, err = _run(argv, capsys)
     assert status == 0, err
+    # demo too, before it draws any body (its bodies take more memory).
+    monkeypatch.setattr(_cli, "_memory_available", lambda: 100 * _cli._DEMO_MIN_BYTES_PER_BODY - 1)
+    demo = ["demo", "--bodies", 100, "--output", tmp_path / "d.png"]
+    status, out, err = _run(demo, capsys)
+    _assert_one_line_error(status, out, err, "jaxquat: error: out of memory", "use fewer --bodies")
+    assert not (tmp_path / "d.png").exists()
 
 
 def test_demo_out_of_memory_advises_only_its_own_options(tmp_path, capsys, monkeypatch):
