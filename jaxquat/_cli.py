@@ -158,7 +158,8 @@ def _step_count(text: str) -> int:
 
 # The CLI draws the whole ensemble on one device, at 100 bytes a body in float32 (q0 and ω, 28, and
 # the random bits they are drawn from, 72), so 2**40 bodies already need 110 TB: more than any machine
-# holds. Counts up to the bound fail cleanly with "out of memory" (exit 2) where they do not fit; far
+# holds. Counts up to the bound fail cleanly with "out of memory" (exit 2) where they do not fit
+# (`check_simulate_memory`, before the kernel's OOM killer would end the process silently); far
 # beyond it XLA aborts the process on the array's size (from 2**58) and past 2**63 - 1 the shape does
 # not fit XLA's int64, neither of which can be reported in one line.
 _BODIES_MAX = 2**40
