@@ -73,7 +73,8 @@ _BODY_AXIS = "bodies"
 _FORMAT = "jaxquat-ensemble"
 _FORMAT_VERSION = 1
 # Default chunk length: about this many body-steps per chunk (≈ 0.1–1 s of work on one CPU core),
-# so that progress is reported often and saved states per chunk stay in the tens of MB.
+# so that progress is reported often and memory stays bounded: saved states per chunk are 2**26/K
+# states (K = save_every), 1 GB of float32 quaternions at K = 1 and tens of MB from K ≈ 16.
 _BODY_STEPS_PER_CHUNK = 2**26
 # As `integrate`: renormalise every this many (global) steps.
 _RENORMALIZE_EVERY = 1000
@@ -1053,19 +1054,40 @@ def _auto_typed(x: Any) -> Any:
     return jax.device_put(x, NamedSharding(auto, sharding.spec))
 
 
+def _on_devices(x: Any, mesh: Mesh | None) -> Any:
+    """`x`, an array committed to devices other than `mesh`'s (put on one device with
+    `jax.device_put`, or laid out over other devices), copied onto `mesh` replicated: the compiled
+    calls lay the bodies out with sharding constraints on `mesh`, and refuse arguments committed
+    elsewhere ("incompatible devices"). Anything else unchanged."""
+    if mesh is None or not isinstance(x, jax.Array) or is_tracer(x) or not x.committed:
+        return x
+    if x.sharding.device_set == set(mesh.devices.flat):
+        return x
+    return jax.device_put(x, NamedSharding(mesh, PartitionSpec()))
+
+
 def _on_own_mesh(simulate: Callable) -> Callable:
     """`simulate_ensemble` on its own mesh, whatever mesh the caller has set: it lays the bodies out
     itself (`body_sharding`), by sharding constraints that a mesh of explicit axes set with
     `jax.set_mesh` (the default of `jax.make_mesh`) turns into assertions, and it takes arrays
-    sharded with explicit axes as their data (retyped with automatic axes, not copied)."""
+    sharded with explicit axes as their data (retyped with automatic axes, not copied), and arrays
+    committed to other devices than its own (copied onto them)."""
 
     @wraps(simulate)
-    def run(q0, omega, *args, inertia=None, torque=None, devices=None, **kwargs):
-        def retyped(tree):
-            return jax.tree_util.tree_map(_auto_typed, tree)
+    def run(q0, omega, *args, inertia=None, torque=None, devices=None, t0=0.0, **kwargs):
+        try:
+            mesh = body_sharding(devices).mesh
+        except ValueError:
+            mesh = None  # (bad `devices`: refused with the other arguments' checks)
 
-        q0, omega, inertia, torque = (retyped(x) for x in (q0, omega, inertia, torque))
-        call = partial(simulate, q0, omega, *args, inertia=inertia, torque=torque, devices=devices)
+        def retyped(tree):
+            return jax.tree_util.tree_map(lambda x: _on_devices(_auto_typed(x), mesh), tree)
+
+        q0, omega, inertia, torque, t0 = (retyped(x) for x in (q0, omega, inertia, torque, t0))
+        args = tuple(retyped(x) for x in args)  # dt (and num_steps)
+        call = partial(
+            simulate, q0, omega, *args, inertia=inertia, torque=torque, devices=devices, t0=t0
+        )
         if not explicit_mesh():
             return call(**kwargs)
         with jax.set_mesh(body_sharding(devices).mesh):

@@ -711,6 +711,50 @@ def test_bodies_are_sharded_over_four_devices_and_match_one_device():
     assert out["1001"]["shape"] == [1001, 4]
 
 
+_COMMITTED = textwrap.dedent(
+    """
+    import json, jax, jax.numpy as jnp, numpy as np
+    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_numpy_rank_promotion", "raise")
+    import jaxquat
+    assert jax.device_count() == 4, jax.devices()
+    devices = jax.devices()
+    q0 = jaxquat.random(jax.random.key(0), (6,))
+    omega = jax.random.normal(jax.random.key(1), (6, 3))
+    samples = jnp.broadcast_to(omega, (12, 6, 3))
+    want = np.asarray(jaxquat.integrate(q0, omega, 0.1, 10, save="final"))
+    on_one = lambda x, d=devices[1]: jax.device_put(x, d)
+    cases = dict(
+        one_device=lambda: jaxquat.simulate_ensemble(on_one(q0), on_one(omega), on_one(0.1), 10),
+        other_layout=lambda: jaxquat.simulate_ensemble(
+            jax.device_put(q0[:4], jaxquat.body_sharding()), omega[:4], 0.1, 10,
+            devices=devices[:2]),
+        sampled=lambda: jaxquat.simulate_ensemble(
+            q0, jaxquat.sampled(on_one(samples), 0.1), 0.1, 10, t0=on_one(0.0)),
+        inertia=lambda: jaxquat.simulate_ensemble(
+            q0, omega, 0.1, 10, inertia=on_one(jnp.ones((6, 3))), frame="world"),
+    )
+    out = {}
+    for name, run in cases.items():
+        try:
+            final = np.asarray(run().final)
+            out[name] = float(np.max(np.abs(final - want[: len(final)])))
+        except Exception as e:
+            out[name] = f"{type(e).__name__}: {e}"[:300]
+    print(json.dumps(out))
+    """
+)
+
+
+def test_arrays_committed_to_other_devices_are_taken():
+    """Arrays put on one device (`jax.device_put(x, device)`), or laid out over other devices than
+    the ensemble's, are copied onto its devices: the chunks' sharding constraints refused them
+    ("Received incompatible devices for jitted computation")."""
+    out = run_on_four_devices(_COMMITTED, timeout=300)
+    for name, error in out.items():  # (unit moments, world frame: the kinematic ensemble)
+        assert isinstance(error, float) and error <= 1e-12, (name, error)
+
+
 _SHARDED_CALLABLES = textwrap.dedent(
     """
     import json, equinox as eqx, jax, jax.numpy as jnp, numpy as np
