@@ -406,9 +406,10 @@ def euler_equations(
     if torque is not None:
         torque = check_trailing(torque, 3, "torque")
         named.append((torque, 1, "torque"))
-    # All three take the common batch shape (naming the arguments if they do not broadcast), so that
-    # any broadcasting combination also works under `jax_numpy_rank_promotion='raise'`.
-    omega_body, inertia, *rest = broadcast_batch(*named)
+    # ω and τ take the common batch shape (naming the arguments if they do not broadcast), so that
+    # any broadcasting combination also works under `jax_numpy_rank_promotion='raise'`. The inertia
+    # keeps its own: broadcast, principal moments (3,) against three bodies would read as a matrix.
+    omega_body, _, *rest = broadcast_batch(*named)
     torque = rest[0] if rest else None
     unit, e = _unit_inertia(inertia)
     return _euler_rhs(omega_body, unit, _unit_inverse(unit), _scaled_torque(torque, e))

@@ -619,6 +619,8 @@ def test_euler_equations_component_form(getkey):
         ((3,), (5, 1, 3), (3,)),  # principal moments with batch axes of their own
         ((5, 3), (2, 1, 3, 3), (5, 3)),  # a batch of full inertias
         ((3,), (2, 1, 3, 3), (5, 3)),
+        ((3, 3), (3,), (3,)),  # three bodies: the moments must not become a (3, 3) matrix
+        ((3,), (3,), (3, 3)),
     ],
 )
 def test_euler_equations_broadcasts_every_argument(
