@@ -1036,7 +1036,7 @@ def _gauss_cubic(k1, k2, k3, offset):
 def _check_corrected_step(terms, t0, t1, q1):
     """`q1`, with a runtime error (`equinox.error_if`) when `terms` is (diffrax's wrapping of) an
     `ODETerm` of `corrected_vector_field(ω, dt)` and the step t1 − t0 is not dt up to the times'
-    rounding (and diffrax's clipping of the last step, within 100 ε·|t1|): the correction is exact
+    rounding (and diffrax's clipping of the last step: within 256 ε·(|t0| + |t1| + dt)): the correction is exact
     for steps of dt only. A last step clipped to t1 = 1.05 with dt = 0.1 turned the body by 0.074
     rad too little at |ω| = 10, silently (helper-54)."""
     term = terms
