@@ -721,8 +721,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
     from ._ensemble import simulate_ensemble
 
-    if jax.devices()[0].platform == "cpu":  # the bodies live in the machine's memory
-        check_simulate_memory(config["bodies"], _memory_available())
+    check_simulate_memory(config["bodies"], _memory_available())
 
     dtype = jnp.dtype(config["dtype"])
     q0, omega = _random_ensemble(
@@ -965,8 +964,10 @@ def check_simulate_memory(
 ) -> None:
     """Raise the one-line "out of memory" `CommandLineError` when `bodies` bodies need more than
     `available` bytes on the CPU even at the least memory a body takes, `per_body` bytes (None:
-    unknown, no check)."""
-    if available is None:
+    unknown, no check; on other devices the bodies do not live in the machine's memory)."""
+    import jax
+
+    if available is None or jax.devices()[0].platform != "cpu":
         return
     needed = per_body * bodies
     if needed > available:
@@ -1249,8 +1250,7 @@ def run_demo(*, bodies: int, steps: int, output: str, seed: int, progress: bool)
     import jax
     import numpy as np
 
-    if jax.devices()[0].platform == "cpu":  # the bodies live in the machine's memory
-        check_simulate_memory(bodies, _memory_available(), _DEMO_MIN_BYTES_PER_BODY)
+    check_simulate_memory(bodies, _memory_available(), _DEMO_MIN_BYTES_PER_BODY)
     result, spread, drift = _demo_ensemble(bodies, steps, seed, progress)
     spread_deg = np.degrees(np.asarray(spread, dtype=np.float64))
     times = np.asarray(result.times)
