@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 import jaxquat
 from jaxquat import load_ensemble, simulate_ensemble
 from jaxquat._cli import main
-from jaxquat._ensemble import _run_chunk
+from jaxquat._ensemble import _default_chunk, _run_chunk
 
 
 def _ensemble(getkey, n, dtype=jnp.float64, scale=1.0):
@@ -189,6 +189,25 @@ def test_time_dependent_omega_chunked_equals_unchunked_and_integrate(getkey, met
         np.testing.assert_array_equal(getattr(whole, field), getattr(pieces, field), err_msg=field)
     reference = jaxquat.integrate(q0, omega, 0.05, 48, method=method, t0=0.25, save_every=8)
     np.testing.assert_allclose(whole.saved, reference, atol=1e-13)
+
+
+@pytest.mark.parametrize("bodies", [1, 1000, 10**5, 10**6, 10**7])
+@pytest.mark.parametrize("save_every", [None, 1, 2, 3, 16])
+def test_default_chunk_bounds_the_work_and_the_saved_states(bodies, save_every):
+    """About 2²⁶ body-steps per chunk, and at most 2²⁴ saved states (256 MB in float32) held per
+    chunk whatever `save_every` is: at 10⁶ bodies and save_every=1 the chunks were 1 GB each."""
+    steps = 10_000
+    chunk = _default_chunk(steps, bodies, save_every)
+    assert 1 <= chunk <= steps + (save_every or 0)
+    if save_every:
+        assert chunk % save_every == 0
+        # One chunk's saved states; the rounding to a multiple of save_every adds at most half of one.
+        assert bodies * chunk // save_every <= 2**24 * 1.5 or chunk == save_every
+    assert bodies * chunk <= 2**26 * 1.5 or chunk <= (save_every or 1)
+    if bodies <= 2**26 // steps and save_every in (None, 1):
+        assert chunk == steps  # one chunk when the whole run is small
+    if save_every is None and bodies > 2**26 // steps:
+        assert bodies * chunk >= 2**25  # not shortened when nothing is saved
 
 
 @pytest.mark.parametrize("method", ["magnus4", "magnus6", "magnus8"])
