@@ -1184,9 +1184,10 @@ def simulate_ensemble(
     `metadata` (not a JSON-serialisable dict), `path` (not a str or os.PathLike; a file; a
     non-empty directory that is not a jaxquat ensemble, or one whose index.json is unreadable or
     malformed; a run whose `dt` or `t0` is traced) or `devices` (not a non-empty sequence of
-    distinct `jax.Device`s); for an `omega(t, q)` of the wrong shape; and, as in `integrate`, for a
-    q-dependent `omega` with a Magnus method and for an `omega(t, q)` or `torque` that reads t when
-    its step times t0 + k·dt need not increase (the time dtype's spacing exceeds half a step).
+    distinct `jax.Device`s); for an ensemble with no bodies (a batch shape with a 0); for an
+    `omega(t, q)` of the wrong shape; and, as in `integrate`, for a q-dependent `omega` with a
+    Magnus method and for an `omega(t, q)` or `torque` that reads t when its step times t0 + k·dt
+    need not increase (the time dtype's spacing exceeds half a step).
 
     **Example:**
     ```python

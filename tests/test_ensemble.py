@@ -573,6 +573,8 @@ def test_progress_is_off_by_default_and_a_bar_on_request(getkey, capsys):
         (dict(inertia=np.ones(3), method="magnus4"), "method"),
         (dict(omega=np.ones((4, 3)), q0=np.ones((3, 4))), "broadcast"),
         (dict(progress="yes"), "progress"),
+        (dict(q0=np.ones((0, 4)), omega=np.ones((0, 3))), r"no bodies \(batch shape \(0,\)\)"),
+        (dict(q0=np.ones((2, 0, 4))), r"no bodies \(batch shape \(2, 0\)\)"),
         (dict(devices=[]), "devices"),
         (dict(devices=["cpu"]), "devices.*jax.Device"),
         (dict(devices=5), "devices.*jax.Device"),
