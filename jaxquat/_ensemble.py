@@ -232,6 +232,22 @@ def _pad_and_shard(
     return jax.lax.with_sharding_constraint(x, sharding)
 
 
+@partial(jax.jit, static_argnames="total")
+def _start_kept(parts: tuple[Array, ...], total: int) -> tuple[Array, ...]:
+    """The in-memory saved states: the first chunk's, followed by room for the rest (time-major)."""
+    return tuple(jnp.pad(x, ((0, total - x.shape[0]),) + ((0, 0),) * (x.ndim - 1)) for x in parts)
+
+
+@partial(jax.jit, donate_argnums=0)
+def _keep_at(kept: tuple[Array, ...], parts: tuple[Array, ...], offset: Array) -> tuple[Array, ...]:
+    """Write a chunk's saved states into the kept ones at `offset`, in place (the kept are donated):
+    the run holds its saved states once, not twice as joining the chunks at the end would."""
+    return tuple(
+        jax.lax.dynamic_update_slice_in_dim(k, x, offset, axis=0)
+        for k, x in zip(kept, parts, strict=True)
+    )
+
+
 def _to_host(x: Array) -> np.ndarray:
     """Fetch a (possibly multi-host) sharded array to the host as a NumPy array."""
     if jax.process_count() > 1:
@@ -1427,15 +1443,21 @@ def simulate_ensemble(
         return x[:, :num_bodies].reshape((x.shape[0],) + batch + (width,))
 
     def keep_or_write(saved, steps, steps_done):
+        nonlocal kept, num_kept
         if writer is not None:
             arrays = {"states": unpad_time_major(_to_host(saved[0]), 4)}
             if dynamic:
                 arrays["omegas"] = unpad_time_major(_to_host(saved[1]), 3)
             writer.write_record(arrays, steps, steps_done=steps_done)
         elif path is None:
-            kept.append(saved)
+            if kept is None:
+                kept = _start_kept(saved, len(saved_steps))
+            else:
+                kept = _keep_at(kept, saved, jnp.asarray(num_kept, jnp.int32))
+            num_kept += saved[0].shape[0]
 
-    kept: list[tuple[Array, ...]] = []
+    kept: tuple[Array, ...] | None = None
+    num_kept = 0
     if save_every:
         initial = (q_start, omega_start) if dynamic else (q_start,)
         keep_or_write(tuple(x[None] for x in initial), [0], 0)
@@ -1508,10 +1530,10 @@ def simulate_ensemble(
     total_angle = unpad(stats[0]) if statistics else None
     max_angle = unpad(jax.jit(_farthest_angle)(*stats[2:])) if statistics else None
     saved_q = saved_w = None
-    if kept:
-        saved_q = unpad_time_major(jnp.concatenate([k[0] for k in kept], axis=0), 4)
+    if kept is not None:
+        saved_q = unpad_time_major(kept[0], 4)
         if dynamic:
-            saved_w = unpad_time_major(jnp.concatenate([k[1] for k in kept], axis=0), 3)
+            saved_w = unpad_time_major(kept[1], 3)
     if writer is not None:
         arrays = {"final": final, "final_omega": final_omega, "angle_from_start": angle_from_start}
         if statistics:
