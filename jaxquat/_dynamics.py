@@ -140,13 +140,21 @@ def _point_inertia(masses: Array, relative: Array) -> Array:
     Masses and positions are brought to scale 1 first (exact powers of two, `prescale`) and the sum
     scaled back: |rᵢ|² underflowed float32 from |r| ≈ 1e-19 (I = 0 for masses 1e20 at 1e-20) and
     overflowed from 1e19 (helper-53)."""
+    unit, e = _point_inertia_scaled(masses, relative)
+    return power_of_two_times(unit, e[..., None, None])
+
+
+def _point_inertia_scaled(masses: Array, relative: Array) -> tuple[Array, Array]:
+    """(J, e) with `_point_inertia(masses, relative)` = J·2ᵉ exactly and J at scale ~1: for callers
+    that need I only up to its scale (I⁻¹ applied to a vector, the ratio of its moments), which I
+    itself may not hold (a molecule in SI units, I ≈ 1e-46 kg m², underflows float32)."""
     masses, e_mass = prescale(masses, limit=0)
     relative, e_length = prescale(relative, axes=(-2, -1), limit=0)
     eye = jnp.eye(3, dtype=relative.dtype)
     outer = relative[..., :, None] * relative[..., None, :]
     per_point = sum_squares(relative)[..., None, None] * jnp.broadcast_to(eye, outer.shape) - outer
     unit = jnp.sum(masses[..., None, None] * per_point, axis=-3)
-    return power_of_two_times(unit, (e_mass + 2 * e_length)[..., None, None])
+    return unit, e_mass + 2 * e_length
 
 
 def inertia_tensor(
@@ -345,12 +353,6 @@ def _unit_inverse(unit: Array) -> Array:
     cofactors = jnp.stack([cross(row1, row2), cross(row2, row0), cross(row0, row1)], axis=-1)
     det = jnp.sum(row0 * cross(row1, row2), axis=-1)
     return cofactors / det[..., None, None]
-
-
-def _inverse_inertia(inertia: Array) -> Array:
-    """I⁻¹ as a matrix or reciprocal moments, for any I the dtype holds (`_unit_inertia`)."""
-    unit, e = _unit_inertia(inertia)
-    return power_of_two_times(_unit_inverse(unit), -e[(...,) + (None,) * (unit.ndim - e.ndim)])
 
 
 def _scaled_torque(torque: Array | None, e: Array) -> Array | None:
@@ -713,14 +715,16 @@ def _centred(masses: Array, x: Array) -> Array:
     return x - center_of_mass(masses, x)[..., None, :]
 
 
-def _shape_state(masses: Array, positions: Callable, t: Array) -> tuple[Array, Array]:
-    """The inertia about the centre of mass and the internal angular momentum of the shape at time t.
+def _shape_state(masses: Array, positions: Callable, t: Array) -> tuple[Array, Array, Array]:
+    """(J, e, L_int): the inertia about the centre of mass J·2ᵉ (`_point_inertia_scaled`) and the
+    internal angular momentum of the shape at time t.
 
     The shape velocities are the exact time derivative of `positions` (forward-mode autodiff).
     """
     x, v = jax.jvp(positions, (t,), (jnp.ones_like(t),))
     relative = _centred(masses, x)
-    return _point_inertia(masses, relative), _moment(masses, cross(relative, v))
+    unit, e = _point_inertia_scaled(masses, relative)
+    return unit, e, _moment(masses, cross(relative, v))
 
 
 def _check_not_collinear(masses: Array, positions: Callable, t0: Array) -> None:
@@ -734,8 +738,10 @@ def _check_not_collinear(masses: Array, positions: Callable, t0: Array) -> None:
     x0 = jnp.asarray(x0)
     if not (np.all(np.isfinite(np.asarray(x0))) and np.all(np.isfinite(np.asarray(masses)))):
         return  # NaN in, NaN out
+    # The inertia up to its scale (a power of two): I itself may underflow (a float32 molecule in
+    # SI units has I ≈ 1e-46 and came out 0, "a single point"), the moments' ratio does not.
     moments = np.linalg.eigvalsh(
-        np.asarray(_point_inertia(masses, _centred(masses, x0)), np.float64)
+        np.asarray(_point_inertia_scaled(masses, _centred(masses, x0))[0], np.float64)
     )
     if moments[0] <= 8.0 * float(jnp.finfo(t0.dtype).eps) * moments[-1]:
         what = "a single point" if moments[-1] <= 0 else "on one line"
@@ -746,13 +752,30 @@ def _check_not_collinear(masses: Array, positions: Callable, t0: Array) -> None:
         )
 
 
-def _deformable_field(masses: Array, positions: Callable):
-    """(t, q, Π) → (ω_b, Π̇) with ω_b = I(t)⁻¹(Π − L_int(t)) and Π̇ = Π × ω_b."""
+def _inertia_exponent(masses: Array, positions: Callable, t: Array) -> Array:
+    """The e of I(t) = J·2ᵉ with J's largest entry in [½, 1) (integer-valued, no derivative)."""
+    unit, e = _point_inertia_scaled(masses, _centred(masses, positions(t)))
+    return e + _unit_inertia(unit)[1]
 
-    def field(t, q, momentum_body):
-        inertia, internal = _shape_state(masses, positions, t)
-        omega_body = _apply_inertia(_inverse_inertia(inertia), momentum_body - internal)
-        return omega_body, cross(momentum_body, omega_body)
+
+def _deformable_field(masses: Array, positions: Callable, e0: Array):
+    """(t, q, P) → (ω_b, Ṗ) for the scaled body-frame momentum P = Π·2^(−e0), with
+    ω_b = I(t)⁻¹(Π − L_int(t)) and Π̇ = Π × ω_b.
+
+    Π and I are carried at the scale of ω (`e0` the exponent of I(t0), `_inertia_exponent`): at their
+    own scale a float32 molecule in SI units (I ≈ 1e-46, Π ≈ 1e-34) underflowed I and overflowed I⁻¹
+    (q was NaN), and the Kahan compensation of Π (≈ 1e-41) was subnormal (1e-4 rad off).
+    """
+
+    def field(t, q, momentum):
+        unit, e, internal = _shape_state(masses, positions, t)
+        unit, e_unit = _unit_inertia(unit)
+        # ω_b = J⁻¹(P − L_int·2^(−e0))·2^(e0 − e) with I = J·2ᵉ: neither I nor I⁻¹ at its own scale.
+        relative = momentum - power_of_two_times(internal, -e0)
+        omega_body = _apply_inertia(
+            _unit_inverse(unit), power_of_two_times(relative, (e0 - e - e_unit)[..., None])
+        )
+        return omega_body, cross(momentum, omega_body)
 
     return field
 
@@ -871,9 +894,10 @@ def _deformable_run(masses, positions, q0, momentum_world, dt, t0, run: _LongRun
     def body_positions(t):
         return jnp.asarray(positions(t)).astype(dtype)
 
-    field = _deformable_field(masses, body_positions)
+    e0 = _inertia_exponent(masses, body_positions, t0)
+    field = _deformable_field(masses, body_positions, e0)
 
-    carry0 = (q0, rotate(momentum_world, conjugate(q0)))
+    carry0 = (q0, power_of_two_times(rotate(momentum_world, conjugate(q0)), -e0))
     final, qs = _long_run_scan(run, field, t0, dt, dtype, carry0, output=lambda carry: carry[0])
 
     def world_positions(t, q):

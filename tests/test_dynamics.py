@@ -1357,3 +1357,50 @@ def test_callables_with_state_are_traced_at_each_call():
 
     for rate in (0.5, 1.5):  # d/dc of ω₀ exp(−c/2) is −ω₀/2 exp(−c/2)
         np.testing.assert_allclose(jax.grad(loss)(rate), -0.55 * np.exp(-rate / 2.0), rtol=1e-8)
+
+
+def _molecule_shape(s):
+    """A bent triatomic in ångström as a function of dimensionless time s."""
+    angle = 1.8 + 0.3 * jnp.sin(s)
+    r1 = 0.96 * (1 + 0.05 * jnp.sin(2 * s))
+    r2 = 0.96 * (1 - 0.05 * jnp.cos(3 * s))
+    return jnp.array(
+        [
+            [0.0, 0.0, 0.0],
+            [r1, 0.0, 0.0],
+            [r2 * jnp.cos(angle), r2 * jnp.sin(angle), 0.05 * jnp.sin(s)],
+        ]
+    )
+
+
+@pytest.mark.parametrize("mass_dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("momentum", [0.0, 2.0])
+def test_float32_deformable_body_in_si_units_of_a_molecule(momentum, mass_dtype):
+    # Masses ~1e-26 kg at ~1e-10 m: I ≈ 1e-46 kg m² underflows float32 (and I⁻¹ overflows), Π ≈ ħ.
+    # The orientation must not depend on the units: it was NaN (float64 masses), a false "single
+    # point" ValueError (float32 masses), and, once finite, 1e-4 rad off with L = 2ħ (a subnormal
+    # Kahan compensation of Π ≈ 1e-41).
+    amu, angstrom, fs, hbar = 1.66e-27, 1e-10, 1e-15, 1.0546e-34
+    masses = np.array([16.0, 1.0, 1.0])
+    q0 = jnp.array([1.0, 0.0, 0.0, 0.0], jnp.float32)
+    natural = momentum * hbar / (amu * angstrom**2 / fs)  # in amu Å² / fs
+    reference, _ = jq.simulate_deformable_body(  # float64, in amu, Å and fs
+        jnp.asarray(masses),
+        lambda t: _molecule_shape(t / 10.0),
+        q0.astype(jnp.float64),
+        0.5,
+        200,
+        angular_momentum=jnp.array([0.0, 0.0, natural]),
+    )
+    qs, _ = jq.simulate_deformable_body(
+        np.asarray(masses * amu, mass_dtype),  # float64 masses are cast to q0's float32
+        lambda t: _molecule_shape(t / (10.0 * fs)) * angstrom,
+        q0,
+        0.5 * fs,
+        200,
+        angular_momentum=jnp.array([0.0, 0.0, momentum * hbar], jnp.float32),
+    )
+    assert qs.dtype == jnp.float32
+    error = np.asarray(jq.angle_between(qs.astype(jnp.float64), reference))
+    assert np.all(np.isfinite(error))
+    assert error.max() < 1e-5
