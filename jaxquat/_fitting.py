@@ -164,6 +164,20 @@ def _check_observations(times: ArrayLike, qs: ArrayLike, weights: ArrayLike | No
                 f"times[{first}] = {float(times[first])!r} >= times[{first + 1}] = "
                 f"{float(times[first + 1])!r}."
             )
+        # XLA flushes subnormal numbers to zero: a step below the smallest normal number (of the
+        # times' dtype, or of the data's, into which the durations are cast; float16 data are
+        # computed in float32, where its steps of 3e-5 are normal) became a duration of 0, and the
+        # fit NaN (times [0, 1e-310, 2e-310, ...]).
+        computed = jnp.promote_types(qs.dtype, jnp.float32)
+        tiny = max(float(jnp.finfo(concrete.dtype).tiny), float(jnp.finfo(computed).tiny))
+        if not np.all(steps >= tiny):
+            first = int(np.argmin(steps >= tiny))
+            raise ValueError(
+                "`times` must increase by at least the smallest normal number "
+                f"({tiny!r}; smaller steps are flushed to zero) between observations; "
+                f"times[{first}] = {float(times[first])!r} and times[{first + 1}] = "
+                f"{float(times[first + 1])!r}. Rescale the times."
+            )
     dtype = qs.dtype
     if weights is None:
         weights = jnp.ones((num_obs,), dtype)
@@ -746,7 +760,8 @@ def fit_angular_velocity(
     `model="spline"`, whose 4 knots need 4 relative rotations), mismatched shapes of
     `times`, `qs`, `weights`, `omega0`, bad `knots` (including more knots than the data determine,
     K > T − 1), `model`, `frame` or `solver`, and — when the data are concrete (not under
-    `jit`/`vmap`) — non-finite or non-increasing times, zero, non-finite or subnormal rows of `qs`,
+    `jit`/`vmap`) — non-finite or non-increasing times (or steps between them below the
+    smallest normal number, which XLA flushes to zero), zero, non-finite or subnormal rows of `qs`,
     and explicit knot times the observations do not determine (see `knots`).
 
     **Batches:** `jax.vmap(fit_angular_velocity)(times, qs)` fits many independent bodies in one

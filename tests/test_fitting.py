@@ -1089,3 +1089,16 @@ def test_time_varying_start_is_not_pulled_by_a_short_noisy_interval(model):
         np.testing.assert_allclose(
             np.asarray(fit.omega.values) * scale, np.tile(omega, (5, 1)), atol=0.1
         )
+
+
+@pytest.mark.parametrize("step, dtype", [(1e-310, np.float64), (1e-40, np.float32)])
+def test_subnormal_time_steps_are_refused(step, dtype):
+    # XLA flushes subnormal numbers to zero: strictly increasing times whose steps are subnormal
+    # gave durations of 0 and a NaN fit (converged=False) instead of a ValueError.
+    omega = jnp.array([0.3, 0.2, 0.1])
+    times = np.concatenate([[0.0, step, 2 * step], np.linspace(1.0, 2.0, 7)])
+    qs = np.asarray(jaxquat.step(jaxquat.identity(), omega, times), dtype)
+    with pytest.raises(ValueError, match="`times` must increase by at least the smallest normal"):
+        jaxquat.fit_angular_velocity(times.astype(dtype), qs)
+    with pytest.raises(ValueError, match="`times` must increase by at least the smallest normal"):
+        jaxquat.fit_angular_velocity(times, qs)  # float64 times, durations cast to the data's dtype
