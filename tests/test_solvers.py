@@ -1014,3 +1014,24 @@ def test_normalized_euler_refuses_steps_other_than_the_corrected_fields_dt():
     rates = jnp.array([0.5, 1.0, 2.0])
     expected = Rotation.from_rotvec(np.outer(np.asarray(rates), omega)).as_quat()[:, [3, 0, 1, 2]]
     assert quat_distance(final(rates), expected) < 1e-12
+
+
+@pytest.mark.parametrize(
+    "turns, dtype, tol",
+    [(1.0, jnp.float64, 1e-12), (2.0, jnp.float64, 1e-12), (1.0, jnp.float32, 5e-6)],
+)
+def test_cf4_dense_output_of_steps_of_whole_turns_keeps_the_axis(turns, dtype, tol):
+    # A CF4 step turning by exactly 2π (or 4π) leaves vec(q1 ⊗ q0*) at round-off, whose direction was
+    # taken as the interpolant's axis: mid-step 0.26 rad (2π) and 1.3 rad (4π) off in float64.
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    w = jnp.asarray(2 * np.pi * turns * axis, dtype)
+    q0 = jq.normalize(jnp.array([0.9, 0.1, -0.3, 0.2], dtype))
+    ts = jnp.array([0.25, 0.5, 0.75, 1.5], dtype)
+    term = diffrax.ODETerm(jq.kinematic_vector_field(w))
+    sol = diffrax.diffeqsolve(term, jq.CF4(), 0.0, 2.0, 1.0, q0, saveat=diffrax.SaveAt(ts=ts))
+    exact = jq.multiply(jq.from_rotvec(ts[:, None] * w[None, :]), q0[None, :])
+    err = jnp.minimum(
+        jnp.linalg.norm(sol.ys - exact, axis=-1), jnp.linalg.norm(sol.ys + exact, axis=-1)
+    )
+    assert sol.ys.dtype == dtype
+    assert float(jnp.max(err)) < tol
