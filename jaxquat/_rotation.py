@@ -32,24 +32,57 @@ from ._numerics import (
 
 
 @eager_jit()
-def rotate(v: ArrayLike, q: ArrayLike, center: ArrayLike | None = None) -> Array:
+def rotate(
+    v: ArrayLike,
+    q: ArrayLike | None = None,
+    center: ArrayLike | None = None,
+    *,
+    axis: ArrayLike | None = None,
+    angle: ArrayLike | None = None,
+) -> Array:
     """Rotate vectors `v` by the quaternion `q` about `center`: v' = q (v − c) q⁻¹ + c.
 
     `q` need not be unit: q⁻¹ = q*/|q|² is used, so only the direction of q matters (the seed's
     `rotate(v, q, center)`; with `center=None` the origin). Any finite nonzero q the dtype holds works
     (nonzero: not all components zero or subnormal, since XLA:CPU flushes subnormal numbers to zero):
     one whose |q|² would overflow or underflow is first scaled by an exact power of two.
+    As in DeformableBodies.jl, the rotation may be given as `axis=` and `angle=` instead of `q`
+    (`rotate(v, axis=n, angle=θ, center=c)` is `rotate(v, from_axis_angle(n, θ), c)`).
 
     **Arguments:**
 
     - `v`: vectors, shape `(..., 3)`. A point set `(n, 3)` rotated by one `q` of shape `(4,)` broadcasts.
     - `q`: quaternions, shape `(..., 4)`; leading axes broadcast with those of `v`.
     - `center`: optional centre of rotation, shape `(..., 3)`.
+    - `axis`, `angle` (keywords, instead of `q`): a rotation axis `(..., 3)` (need not be unit) and
+      angle in radians `(...)`, right-handed, as for `from_axis_angle`.
 
     **Returns:** the rotated vectors, shape `(..., 3)`.
 
-    Example: `rotate([3, 0, 0], [1, 2, 3, 4])` is `[-2, 2, 1]`.
+    **Errors:** a `ValueError` naming the argument for a bad shape, and for a call giving neither
+    `q` nor both `axis` and `angle`, or both.
+
+    Example: `rotate([3, 0, 0], [1, 2, 3, 4])` is `[-2, 2, 1]`;
+    `rotate([1, 0, 0], axis=[0, 0, 1], angle=jnp.pi / 2, center=[0, 1, 0])` is `[1, 2, 0]`.
     """
+    if q is None:
+        if axis is None or angle is None:
+            given = (
+                "only `axis`"
+                if axis is not None
+                else "only `angle`"
+                if angle is not None
+                else "neither"
+            )
+            raise ValueError(
+                f"`rotate` needs the rotation: a quaternion `q`, or both `axis` and `angle`; got {given}."
+            )
+        q = from_axis_angle(axis, angle)
+    elif axis is not None or angle is not None:
+        raise ValueError(
+            "`rotate` takes the rotation as `q` or as `axis` and `angle`, not both; got `q` and "
+            f"{'`axis`' if axis is not None else '`angle`'}."
+        )
     v = check_trailing(v, 3, "v")
     q = check_trailing(q, 4, "q")
     if center is not None:

@@ -78,6 +78,37 @@ def test_seed_axis_angle():
     np.testing.assert_allclose(jq.rotate([1, 0, 0], q, center=[0, 1, 0]), [1, 2, 0], atol=1e-12)
 
 
+def test_seed_rotate_takes_axis_and_angle_keywords():
+    """The seed's `rotate(v; axis, angle, center)`, with its printed result."""
+    got = jq.rotate([1, 0, 0], axis=[0, 0, 1], angle=math.pi / 2)
+    np.testing.assert_allclose(got, [2.220446049250313e-16, 1.0, 0.0], rtol=0, atol=1e-16)
+    got = jq.rotate([1, 0, 0], axis=[0, 0, 1], angle=math.pi / 2, center=[0, 1, 0])
+    np.testing.assert_allclose(got, [1, 2, 0], atol=1e-12)
+    # Batched against SciPy: axes (not unit) and angles per vector, one centre, under jit.
+    rng = np.random.default_rng(5)
+    v, axis, angle = rng.normal(size=(50, 3)), rng.normal(size=(50, 3)), rng.uniform(-7, 7, 50)
+    c = np.array([0.5, -1.0, 2.0])
+    expected = Rotation.from_rotvec(angle[:, None] * axis / np.linalg.norm(axis, axis=1)[:, None])
+    got = jax.jit(lambda v, n, a: jq.rotate(v, axis=n, angle=a, center=c))(v, axis, angle)
+    np.testing.assert_allclose(got, expected.apply(v - c) + c, atol=1e-13)
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(axis=[0, 0, 1]), "got only `axis`"),
+        (dict(angle=1.0), "got only `angle`"),
+        ({}, "got neither"),
+        (dict(q=[1, 0, 0, 0], axis=[0, 0, 1]), "not both; got `q` and `axis`"),
+        (dict(q=[1, 0, 0, 0], angle=1.0), "not both; got `q` and `angle`"),
+        (dict(axis=[0, 1], angle=1.0), r"`axis` must have shape \(\.\.\., 3\)"),
+    ],
+)
+def test_rotate_needs_exactly_one_form_of_the_rotation(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        jq.rotate([1.0, 0.0, 0.0], **kwargs)
+
+
 def test_seed_matrix_to_quaternion():
     c = math.cos(math.pi / 4)
     m = np.array([[c, -c, 0], [c, c, 0], [0, 0, 1]])
