@@ -1220,11 +1220,26 @@ def run_w4(preset: Preset, output: Path, log: Callable[[str], None]) -> dict:
     best_jaxquat = _best_at_target(series, "jaxquat")
     record["best_jaxquat"] = best_jaxquat
     record["speedups"] = {}
+    # A time "at most" (the cheapest point already beats the target) is an upper bound, so is a
+    # speed-up from a peer's such time; one from jaxquat's is a lower bound; from both, neither.
+    record["speedup_bounds"] = {}
     if best_jaxquat is not None:
-        best_seconds = next(s for s in series if s["name"] == best_jaxquat)["seconds_at_target"]
+        best = next(s for s in series if s["name"] == best_jaxquat)
         for entry in series:
             if entry["role"] == "peer" and entry["seconds_at_target"] is not None:
-                record["speedups"][entry["name"]] = entry["seconds_at_target"] / best_seconds
+                name = entry["name"]
+                record["speedups"][name] = entry["seconds_at_target"] / best["seconds_at_target"]
+                peer_bound = entry["at_target"] == "at most"
+                jaxquat_bound = best["at_target"] == "at most"
+                record["speedup_bounds"][name] = (
+                    "unknown"
+                    if peer_bound and jaxquat_bound
+                    else "at most"
+                    if peer_bound
+                    else "at least"
+                    if jaxquat_bound
+                    else "exact"
+                )
     png = output / "w4_work_precision.png"
     try:
         _plot_w4(series, png)
@@ -1622,11 +1637,21 @@ def render_markdown(report: dict) -> str:
                 f"{f'{best_error:.1e}' if best_error is not None else '—'} | {len(entry['points'])} |"
             )
         if w4.get("best_jaxquat"):
-            speedups = ", ".join(f"{n} {s:.1f}×" for n, s in w4["speedups"].items())
+            marks = {"at most": "≤ ", "at least": "≥ ", "unknown": "~"}
+            bounds = w4.get("speedup_bounds", {})
+            speedups = ", ".join(
+                f"{n} {marks.get(bounds.get(n, 'exact'), '')}{s:.1f}×"
+                for n, s in w4["speedups"].items()
+            )
             lines += [
                 "",
                 f"Best jaxquat method: {w4['best_jaxquat']}; its speed-up over {speedups}.",
             ]
+            if any(b != "exact" for b in bounds.values()):
+                lines.append(
+                    "(≤ / ≥: a speed-up from a time at target that is only an upper bound, the "
+                    "peer's / jaxquat's; ~: both are.)"
+                )
         lines.append("")
     w5 = report.get("w5", [])
     if w5:

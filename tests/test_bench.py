@@ -294,3 +294,55 @@ def test_w5_floor_script_runs_and_checks_its_passes():
     )
     assert bad.returncode == 2 and "must be positive integers" in bad.stderr
     assert "Traceback" not in bad.stderr
+
+
+def test_w4_speedup_from_a_bound_is_marked(tmp_path, monkeypatch):
+    """A W4 time that is only a bound ("at most": the cheapest point of the series already beats
+    1e-8 rad, e.g. a noisy sample on its Pareto front) made an exact-looking speed-up: numpy-quaternion
+    at "≤ 1.84 ms" against magnus8's interpolated 159 µs was reported as "11.5×". The speed-up from a
+    peer's upper bound is itself an upper bound, from jaxquat's upper bound a lower bound."""
+
+    def series(name, role, errors_and_seconds):
+        points = [{"steps": 1, "error": e, "seconds": s} for e, s in errors_and_seconds]
+        return {"name": name, "role": role, "points": points, "note": ""}
+
+    fake = [
+        series("jaxquat exact", "jaxquat", [(1e-7, 1e-4), (1e-9, 4e-4)]),  # interpolated: 2e-4 s
+        series("peer exact", "peer", [(1e-7, 1e-3), (1e-9, 4e-3)]),  # interpolated: 2e-3 s
+        series("peer bound", "peer", [(5e-9, 1e-3), (1e-9, 4e-3)]),  # at most 1e-3 s
+    ]
+    monkeypatch.setattr(_bench, "_w4_series", lambda preset, log: [dict(s) for s in fake])
+    record = _bench.run_w4(_bench.PRESETS["micro"], tmp_path, lambda message: None)
+    assert record["best_jaxquat"] == "jaxquat exact"
+    assert record["speedups"]["peer exact"] == pytest.approx(10.0)
+    assert record["speedups"]["peer bound"] == pytest.approx(5.0)
+    assert record["speedup_bounds"] == {"peer exact": "exact", "peer bound": "at most"}
+    machine = {
+        "cpu": "x",
+        "cores": 1,
+        "vector_extensions": [],
+        "memory": "1 GiB",
+        "platform": "p",
+        "python": "3",
+        "versions": {},
+        "load_average_at_start": None,
+        "date_utc": "d",
+    }
+    report = {
+        "preset": "micro",
+        "machine": machine,
+        "elapsed_seconds": 1.0,
+        "rows": [],
+        "w4": record,
+        "w5": [],
+        "notes": [],
+        "config": {"repeats": 1},
+    }
+    markdown = _bench.render_markdown(report)
+    assert "peer exact 10.0×" in markdown and "peer bound ≤ 5.0×" in markdown, markdown
+
+    # jaxquat's best time an upper bound: its speed-ups are lower bounds.
+    fake[0] = series("jaxquat exact", "jaxquat", [(5e-9, 1e-4), (1e-9, 4e-4)])  # at most 1e-4 s
+    record = _bench.run_w4(_bench.PRESETS["micro"], tmp_path, lambda message: None)
+    assert record["speedup_bounds"] == {"peer exact": "at least", "peer bound": "unknown"}
+    assert "peer exact ≥ 20.0×" in _bench.render_markdown({**report, "w4": record})
