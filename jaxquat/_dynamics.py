@@ -715,16 +715,22 @@ def _centred(masses: Array, x: Array) -> Array:
     return x - center_of_mass(masses, x)[..., None, :]
 
 
-def _shape_state(masses: Array, positions: Callable, t: Array) -> tuple[Array, Array, Array]:
-    """(J, e, L_int): the inertia about the centre of mass J·2ᵉ (`_point_inertia_scaled`) and the
-    internal angular momentum of the shape at time t.
+def _shape_state(masses: Array, positions: Callable, t: Array) -> tuple[Array, Array, Array, Array]:
+    """(J, e, K, e_K): the inertia about the centre of mass J·2ᵉ (`_point_inertia_scaled`) and the
+    internal angular momentum of the shape at time t, L_int = K·2^(e_K).
 
     The shape velocities are the exact time derivative of `positions` (forward-mode autodiff).
+    L_int is summed from masses, positions and velocities at scale 1 (as I is): at its own scale it
+    underflowed float32 to 0 for molecules over seconds (1e-46; the body did not turn) and
+    overflowed for stars at 1 au (1e52; NaN).
     """
     x, v = jax.jvp(positions, (t,), (jnp.ones_like(t),))
     relative = _centred(masses, x)
     unit, e = _point_inertia_scaled(masses, relative)
-    return unit, e, _moment(masses, cross(relative, v))
+    masses, e_mass = prescale(masses, limit=0)
+    relative, e_length = prescale(relative, axes=(-2, -1), limit=0)
+    v, e_speed = prescale(v, axes=(-2, -1), limit=0)
+    return unit, e, _moment(masses, cross(relative, v)), e_mass + e_length + e_speed
 
 
 def _check_not_collinear(masses: Array, positions: Callable, t0: Array) -> None:
@@ -768,10 +774,11 @@ def _deformable_field(masses: Array, positions: Callable, e0: Array):
     """
 
     def field(t, q, momentum):
-        unit, e, internal = _shape_state(masses, positions, t)
+        unit, e, internal, e_internal = _shape_state(masses, positions, t)
         unit, e_unit = _unit_inertia(unit)
-        # ω_b = J⁻¹(P − L_int·2^(−e0))·2^(e0 − e) with I = J·2ᵉ: neither I nor I⁻¹ at its own scale.
-        relative = momentum - power_of_two_times(internal, -e0)
+        # ω_b = J⁻¹(P − L_int·2^(−e0))·2^(e0 − e) with I = J·2ᵉ: neither I nor I⁻¹ nor L_int at its
+        # own scale.
+        relative = momentum - power_of_two_times(internal, (e_internal - e0)[..., None])
         omega_body = _apply_inertia(
             _unit_inverse(unit), power_of_two_times(relative, (e0 - e - e_unit)[..., None])
         )

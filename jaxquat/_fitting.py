@@ -165,11 +165,12 @@ def _check_observations(times: ArrayLike, qs: ArrayLike, weights: ArrayLike | No
                 f"{float(times[first + 1])!r}."
             )
         # XLA flushes subnormal numbers to zero: a step below the smallest normal number (of the
-        # times' dtype, or of the data's, into which the durations are cast; float16 data are
-        # computed in float32, where its steps of 3e-5 are normal) became a duration of 0, and the
-        # fit NaN (times [0, 1e-310, 2e-310, ...]).
-        computed = jnp.promote_types(qs.dtype, jnp.float32)
-        tiny = max(float(jnp.finfo(concrete.dtype).tiny), float(jnp.finfo(computed).tiny))
+        # times' dtype, or of the data's, into which the durations are cast) became a duration of
+        # 0, and the fit NaN (times [0, 1e-310, 2e-310, ...]). float16 times are subtracted in
+        # float32 (their steps of 1e-5 fit float32 data exactly), but durations cast to float16
+        # data are float16: steps of 1e-5 gave a NaN fit with float16 data whatever the times.
+        subtracted = jnp.promote_types(concrete.dtype, jnp.float32)
+        tiny = max(float(jnp.finfo(subtracted).tiny), float(jnp.finfo(qs.dtype).tiny))
         if not np.all(steps >= tiny):
             first = int(np.argmin(steps >= tiny))
             raise ValueError(

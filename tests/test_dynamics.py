@@ -1404,3 +1404,28 @@ def test_float32_deformable_body_in_si_units_of_a_molecule(momentum, mass_dtype)
     error = np.asarray(jq.angle_between(qs.astype(jnp.float64), reference))
     assert np.all(np.isfinite(error))
     assert error.max() < 1e-5
+
+
+@pytest.mark.parametrize(
+    "mass_scale, length_scale",
+    [(1e-26, 1e-10), (2e30, 1.5e11), (1.0, 1e-20)],  # L_int = Σ m x × ẋ under/overflowed float32
+)
+def test_float32_deformable_body_internal_momentum_at_any_scale(mass_scale, length_scale):
+    # With L = 0 the body turns only through its internal momentum Σ mᵢ (xᵢ − c) × ẋᵢ, ≈ 1e-46 for
+    # molecules over seconds and ≈ 1e52 for stars at 1 au: computed at its own scale it was 0 (the
+    # body did not turn, 0.17 rad off, silently) or inf (NaN), while I and Π were carried scaled.
+    masses = np.array([16.0, 1.0, 1.3])
+    q0 = jnp.array([1.0, 0.0, 0.0, 0.0], jnp.float32)
+    reference, _ = jq.simulate_deformable_body(
+        jnp.asarray(masses), lambda t: _molecule_shape(t / 3.0), q0.astype(jnp.float64), 0.05, 100
+    )
+    qs, _ = jq.simulate_deformable_body(
+        jnp.asarray(masses * mass_scale, jnp.float32),
+        lambda t: _molecule_shape(t / 3.0) * jnp.float32(length_scale),
+        q0,
+        0.05,
+        100,
+    )
+    error = np.asarray(jq.angle_between(qs.astype(jnp.float64), reference))
+    assert np.all(np.isfinite(error))
+    assert error.max() < 1e-5

@@ -1102,3 +1102,16 @@ def test_subnormal_time_steps_are_refused(step, dtype):
         jaxquat.fit_angular_velocity(times.astype(dtype), qs)
     with pytest.raises(ValueError, match="`times` must increase by at least the smallest normal"):
         jaxquat.fit_angular_velocity(times, qs)  # float64 times, durations cast to the data's dtype
+
+
+def test_subnormal_steps_of_float16_times_or_data():
+    # The durations are cast to the data's dtype: float16 times with steps of 1e-5 (subnormal in
+    # float16, exact in float32) fit float32 data (they were refused), and float16 data at such
+    # steps gave a NaN fit with float32 times (it was not refused).
+    omega = jnp.array([0.3, 0.2, 0.1])
+    times = (np.arange(10) * 1e-5).astype(np.float16)
+    qs = jaxquat.step(jaxquat.identity(), omega * 1e4, times.astype(np.float64))
+    fit = jaxquat.fit_angular_velocity(times, np.asarray(qs, np.float32))
+    np.testing.assert_allclose(np.asarray(fit.omega) / 1e4, omega, rtol=1e-5)
+    with pytest.raises(ValueError, match="`times` must increase by at least the smallest normal"):
+        jaxquat.fit_angular_velocity(times.astype(np.float32), np.asarray(qs, np.float16))
