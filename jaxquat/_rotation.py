@@ -81,7 +81,7 @@ def rotate(
     elif axis is not None or angle is not None:
         raise ValueError(
             "`rotate` takes the rotation as `q` or as `axis` and `angle`, not both; got `q` and "
-            f"{'`axis`' if axis is not None else '`angle`'}."
+            f"{' and '.join(f'`{n}`' for n, x in (('axis', axis), ('angle', angle)) if x is not None)}."
         )
     v = check_trailing(v, 3, "v")
     q = check_trailing(q, 4, "q")

@@ -101,6 +101,7 @@ def test_seed_rotate_takes_axis_and_angle_keywords():
         ({}, "got neither"),
         (dict(q=[1, 0, 0, 0], axis=[0, 0, 1]), "not both; got `q` and `axis`"),
         (dict(q=[1, 0, 0, 0], angle=1.0), "not both; got `q` and `angle`"),
+        (dict(q=[1, 0, 0, 0], axis=[0, 0, 1], angle=1.0), "got `q` and `axis` and `angle`"),
         (dict(axis=[0, 1], angle=1.0), r"`axis` must have shape \(\.\.\., 3\)"),
     ],
 )
