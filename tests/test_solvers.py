@@ -1035,3 +1035,47 @@ def test_cf4_dense_output_of_steps_of_whole_turns_keeps_the_axis(turns, dtype, t
     )
     assert sol.ys.dtype == dtype
     assert float(jnp.max(err)) < tol
+
+
+@pytest.mark.parametrize(
+    "dtype, theta, atol",
+    [(jnp.float64, 1e-12, 1e-14), (jnp.float64, 1e-18, 1e-14), (jnp.float64, 1e-30, 1e-14)]
+    + [(jnp.float32, 1e-3, 3e-7), (jnp.float32, 1e-6, 3e-7), (jnp.float32, 1e-10, 3e-7)],
+)
+def test_cf4_dense_output_derivative_at_tiny_steps(dtype, theta, atol):
+    """CF4's dense output took the step's rotation vector apart along its own estimate ĝ even for a
+    tiny step, putting 1/|ω|h into the derivative (helper-62): jacrev 5e-6 off at |ω|h = 1e-12, 1.0 at 1e-18,
+    1e12 at 1e-30 (float64); 6.6e-6 at 1e-3, 1e-2 at 1e-6, 15 at 1e-10 (float32). The exact
+    Jacobian is that of `step` (constant ω)."""
+    # float32 with x64 off: with x64 on, diffrax's float64 times promote the steps to float64.
+    with jax.enable_x64(dtype == jnp.float64):
+        _check_cf4_dense_derivative(dtype, theta, atol)
+
+
+def _check_cf4_dense_derivative(dtype, theta, atol):
+    q0 = jnp.asarray([0.4, -0.2, 0.7, 0.55], dtype)
+    q0 = q0 / jnp.linalg.norm(q0)
+    axis = jnp.asarray(np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8]), dtype)
+    h = 0.25
+    omega = axis * jnp.asarray(theta / h, dtype)
+
+    ts = jnp.asarray([0.37, 0.5], dtype)
+
+    def dense(w, forward):
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(jq.kinematic_vector_field(w)),
+            jq.CF4(),
+            0.0,
+            1.0,
+            h,
+            q0,
+            saveat=diffrax.SaveAt(dense=True),
+            adjoint=diffrax.ForwardMode() if forward else diffrax.RecursiveCheckpointAdjoint(),
+        )
+        return jnp.stack([sol.evaluate(t) for t in ts])
+
+    exact = jax.jacfwd(lambda w: jq.step(q0, w, ts))(omega)
+    rev = jax.jacrev(lambda w: dense(w, False))(omega)
+    fwd = jax.jacfwd(lambda w: dense(w, True))(omega)
+    np.testing.assert_allclose(rev, exact, atol=atol)
+    np.testing.assert_allclose(fwd, exact, atol=atol)
