@@ -687,9 +687,11 @@ def sampled(omegas: ArrayLike, dt: ArrayLike, *, t0: ArrayLike = 0.0) -> Sampled
     `source(t)`, or by a diffrax solver — the module sees only the absolute time: a boundary belongs to
     the interval after it, and in float32 at |t| ≈ 10³ s times resolve only ~6e-5 s (samples then
     switch up to ~4 ε|t| early). With diffrax, integrate backwards over held samples with a solver whose
-    stages are all interior (`Magnus4/6/8`, exact there) — not `LieEuler` or `ExpMidpoint`, whose
-    first stage sits at the step's start, a boundary that then reads the sample after it (0.12 rad
-    off over one backward step) — and count time from the first sample (`t0=0`) in float32.
+    stages are all interior (`Magnus4/6/8`, exact there) — not `LieEuler`, `ExpMidpoint` or
+    `NormalizedEuler` (with `corrected_vector_field`), whose first stage sits at the step's start, a
+    boundary that then reads the sample after it (ten random samples run back to t0: 0.35 rad off
+    with `LieEuler` or `NormalizedEuler`, 3e-16 with `Magnus4`) — and count time from the first
+    sample (`t0=0`) in float32.
 
     **Reverse mode.** With `integrate`'s default `method="euler"` the gradient w.r.t. `omegas` costs
     O(T) on the sampling grid and off it (each step reads its sample by index, and its cotangent is
