@@ -150,11 +150,15 @@ def _point_inertia_scaled(masses: Array, relative: Array) -> tuple[Array, Array]
     itself may not hold (a molecule in SI units, I ≈ 1e-46 kg m², underflows float32)."""
     masses, e_mass = prescale(masses, limit=0)
     relative, e_length = prescale(relative, axes=(-2, -1), limit=0)
+    return _unit_point_inertia(masses, relative), e_mass + 2 * e_length
+
+
+def _unit_point_inertia(masses: Array, relative: Array) -> Array:
+    """Σ mᵢ(|rᵢ|² 1 − rᵢrᵢᵀ) of masses and positions already at scale 1 (`prescale`)."""
     eye = jnp.eye(3, dtype=relative.dtype)
     outer = relative[..., :, None] * relative[..., None, :]
     per_point = sum_squares(relative)[..., None, None] * jnp.broadcast_to(eye, outer.shape) - outer
-    unit = jnp.sum(masses[..., None, None] * per_point, axis=-3)
-    return unit, e_mass + 2 * e_length
+    return jnp.sum(masses[..., None, None] * per_point, axis=-3)
 
 
 def inertia_tensor(
@@ -725,12 +729,12 @@ def _shape_state(masses: Array, positions: Callable, t: Array) -> tuple[Array, A
     overflowed for stars at 1 au (1e52; NaN).
     """
     x, v = jax.jvp(positions, (t,), (jnp.ones_like(t),))
-    relative = _centred(masses, x)
-    unit, e = _point_inertia_scaled(masses, relative)
+    relative, e_length = prescale(_centred(masses, x), axes=(-2, -1), limit=0)
     masses, e_mass = prescale(masses, limit=0)
-    relative, e_length = prescale(relative, axes=(-2, -1), limit=0)
     v, e_speed = prescale(v, axes=(-2, -1), limit=0)
-    return unit, e, _moment(masses, cross(relative, v)), e_mass + e_length + e_speed
+    unit = _unit_point_inertia(masses, relative)
+    internal = _moment(masses, cross(relative, v))
+    return unit, e_mass + 2 * e_length, internal, e_mass + e_length + e_speed
 
 
 def _check_not_collinear(masses: Array, positions: Callable, t0: Array) -> None:
