@@ -363,10 +363,9 @@ def _step_rotvec(q0: Array, q1: Array, guess: Array, slack: float = 8.0) -> Arra
     # resolved to absolute round-off, which is harmless in its value, but taking it apart along
     # ĝ = guess/|guess| put 1/|guess| into the derivative: the dense output's Jacobian in ω was
     # 5e-6 off at |ω|h = 1e-12, O(1) at 1e-18, 1e12 at 1e-30 in float64, and 6.6e-6 at 1e-3, 1e-2
-    # at 1e-6, 15 at 1e-10 in float32 (helper-62). Such a step
-    # keeps v and its exact derivative (and ω = 0, no guess, derivative 2·I as before).
-    near_turn = has_guess & (guess_size > math.pi)
-    v = jnp.where(near_turn, along + shrink * across, v)
+    # at 1e-6, 15 at 1e-10 in float32 (helper-62). Such a step keeps v and its exact derivative
+    # (ω = 0 included: no guess, derivative 2·I).
+    v = jnp.where(guess_size > math.pi, along + shrink * across, v)
     # 2 log(w, v): atan2(|v|, w) v/|v| without normalising v (whose direction's derivative cancels
     # two terms of size 1/|v| near a full turn); w < 0 with v = 0 (exactly -1): `guess`'s axis.
     u = 2.0 * log(jnp.concatenate([w, v], axis=-1))[..., 1:]
