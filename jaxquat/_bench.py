@@ -1206,6 +1206,15 @@ def time_at_error(points: Sequence[dict], target: float) -> tuple[float | None, 
     return None, "not reached"
 
 
+# (the peer's time at target is an upper bound, jaxquat's is) → what the speed-up is.
+_SPEEDUP_BOUND = {
+    (False, False): "exact",
+    (True, False): "at most",
+    (False, True): "at least",
+    (True, True): "unknown",
+}
+
+
 def run_w4(preset: Preset, output: Path, log: Callable[[str], None]) -> dict:
     series = _w4_series(preset, log)
     for entry in series:
@@ -1229,17 +1238,8 @@ def run_w4(preset: Preset, output: Path, log: Callable[[str], None]) -> dict:
             if entry["role"] == "peer" and entry["seconds_at_target"] is not None:
                 name = entry["name"]
                 record["speedups"][name] = entry["seconds_at_target"] / best["seconds_at_target"]
-                peer_bound = entry["at_target"] == "at most"
-                jaxquat_bound = best["at_target"] == "at most"
-                record["speedup_bounds"][name] = (
-                    "unknown"
-                    if peer_bound and jaxquat_bound
-                    else "at most"
-                    if peer_bound
-                    else "at least"
-                    if jaxquat_bound
-                    else "exact"
-                )
+                bounds = (entry["at_target"] == "at most", best["at_target"] == "at most")
+                record["speedup_bounds"][name] = _SPEEDUP_BOUND[bounds]
     png = output / "w4_work_precision.png"
     try:
         _plot_w4(series, png)

@@ -65,23 +65,18 @@ def rotate(
     Example: `rotate([3, 0, 0], [1, 2, 3, 4])` is `[-2, 2, 1]`;
     `rotate([1, 0, 0], axis=[0, 0, 1], angle=jnp.pi / 2, center=[0, 1, 0])` is `[1, 2, 0]`.
     """
+    given = [f"`{name}`" for name, x in (("axis", axis), ("angle", angle)) if x is not None]
     if q is None:
-        if axis is None or angle is None:
-            given = (
-                "only `axis`"
-                if axis is not None
-                else "only `angle`"
-                if angle is not None
-                else "neither"
-            )
+        if len(given) < 2:
             raise ValueError(
-                f"`rotate` needs the rotation: a quaternion `q`, or both `axis` and `angle`; got {given}."
+                "`rotate` needs the rotation: a quaternion `q`, or both `axis` and `angle`; got "
+                f"{'only ' + given[0] if given else 'neither'}."
             )
         q = from_axis_angle(axis, angle)
-    elif axis is not None or angle is not None:
+    elif given:
         raise ValueError(
             "`rotate` takes the rotation as `q` or as `axis` and `angle`, not both; got `q` and "
-            f"{' and '.join(f'`{n}`' for n, x in (('axis', axis), ('angle', angle)) if x is not None)}."
+            f"{' and '.join(given)}."
         )
     v = check_trailing(v, 3, "v")
     q = check_trailing(q, 4, "q")
