@@ -40,7 +40,9 @@ def angle_between(p: ArrayLike, q: ArrayLike) -> Array:
 
     $θ = 2\operatorname{atan2}(|\operatorname{vec}(p^* q)|, |w(p^* q)|)$ (never an arccos): sign-invariant (p, −p and q,
     −q give the same θ), scale-invariant (inputs need not be unit), and accurate to round-off for
-    tiny angles, where $2\arccos|⟨p, q⟩|$ floors at ~2e-8 rad (docs/numerics.md §4).
+    tiny angles, where $2\arccos|⟨p, q⟩|$ floors at ~2e-8 rad (docs/numerics.md §4). XLA:CPU reads
+    subnormal components as 0: such a component is lost (float32 (2e-38, 5e-39, 0, 0) is 0 rad from
+    the identity, not 0.49), and an all-subnormal input gives NaN.
 
     **Arguments:**
 
@@ -240,7 +242,8 @@ def mean(
 
     - `q`: quaternions, shape `(..., 4)`; need not be unit (each is normalised first, as SciPy's
       `Rotation` does, so a quaternion's length does not weight it; any finite non-zero length the
-      dtype holds).
+      dtype holds). XLA:CPU reads subnormal components as 0: they are lost, and a quaternion whose
+      components are all subnormal makes the mean NaN.
     - `weights`: optional non-negative weights, broadcastable to `q.shape[:-1]` (a negative, NaN or
       infinite weight is a `ValueError`, except under `jit`, where it cannot be seen: a negative
       weight then gives a meaningless result, a non-finite one NaN).
@@ -279,8 +282,9 @@ def mean(
     outer = q[..., :, None] * q[..., None, :]
     if weights is not None:
         weights = as_float_array(weights, "weights")
-        if not is_tracer(weights):  # the index in the weights as given, before broadcasting
-            values = np.asarray(weights)
+        given = None if is_tracer(weights) else np.asarray(weights)
+        if given is not None:  # the index in the weights as given, before broadcasting
+            values = given
             bad = ~(np.isfinite(values) & (values >= 0))  # NaN is bad (SciPy: LinAlgError)
             if bad.any():
                 index = tuple(int(i) for i in np.argwhere(bad)[0])
@@ -303,10 +307,14 @@ def mean(
             values = np.asarray(total)
             index = tuple(int(i) for i in np.argwhere(values == 0)[0])
             where = f" (batch index {index} of the mean)" if index else ""
-            raise ValueError(
-                f"`weights` sum to zero over the averaged axes {axis}{where}: there is nothing to "
-                "average, and no mean rotation."
+            nonzero = np.any(np.broadcast_to(given, q.shape[:-1]) != 0, axis=axis)[index]
+            why = (
+                f"they are all below the smallest normal number {np.finfo(given.dtype).tiny:.3g} "
+                "of their dtype, which XLA on the CPU reads as 0: scale them up"
+                if nonzero
+                else "there is nothing to average, and no mean rotation"
             )
+            raise ValueError(f"`weights` sum to zero over the averaged axes {axis}{where}: {why}.")
         outer = weights.astype(q.dtype)[..., None, None] * outer
     moment = jnp.sum(outer, axis=axis)
     if weights is not None:

@@ -469,7 +469,8 @@ def from_two_vectors(a: ArrayLike, b: ArrayLike) -> Array:
     **Arguments:**
 
     - `a`, `b`: non-zero vectors, shape `(..., 3)`, any lengths the dtype holds (|a|² may overflow);
-      leading axes broadcast.
+      leading axes broadcast. XLA:CPU reads subnormal components as 0: such a component is lost
+      (float32 (2e-38, 5e-39, 0) is taken along x), and an all-subnormal vector gives NaN.
 
     **Returns:** unit quaternions (w ≥ 0), shape `(..., 4)`, with `rotate(a, q)` parallel to `b`.
 

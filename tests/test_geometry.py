@@ -347,6 +347,36 @@ def test_mean_of_zero_total_weight_is_an_error_or_nan():
     )
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_subnormal_weights_are_named_as_such(dtype):
+    """Weights all below the smallest normal number are read as 0 by XLA on the CPU; the error said
+    they "sum to zero" and that there was nothing to average, which is not what the caller gave."""
+    tiny = np.finfo(dtype).tiny
+    pair = np.array([[1.0, 0.0, 0.0, 0.0], [0.6, 0.8, 0.0, 0.0]], dtype)
+    with pytest.raises(ValueError, match=r"sum to zero .*: they are all below the smallest normal"):
+        jq.mean(pair, np.array([tiny / 4, tiny / 2], dtype))
+    with pytest.raises(ValueError, match="nothing to average"):  # truly zero: the old message
+        jq.mean(pair, np.zeros(2, dtype))
+    # One normal weight is enough: the subnormal one counts as 0, the mean is the other rotation.
+    out = jq.mean(pair, np.array([tiny / 4, 1.0], dtype))
+    assert_quat_close(out, pair[1], atol=4 * np.finfo(dtype).eps)
+
+
+def test_subnormal_components_are_read_as_zero_as_documented():
+    """The README and the docstrings of `angle_between`, `mean` and `from_two_vectors` state that
+    XLA:CPU reads a subnormal component as 0 even beside a normal one (these functions once claimed
+    any scale): float32 (2e-38, 5e-39, 0, 0) is the identity, not a turn of 2·atan(1/4)."""
+    p = np.array([2e-38, 5e-39, 0.0, 0.0], np.float32)
+    identity = np.array([1.0, 0.0, 0.0, 0.0], np.float32)
+    assert float(jq.angle_between(p, identity)) == 0.0
+    np.testing.assert_array_equal(jq.mean(p[None]), identity)
+    np.testing.assert_array_equal(jq.from_two_vectors(p[:3], np.float32([1, 0, 0])), identity)
+    np.testing.assert_array_equal(jq.rotate(np.float32([0, 1, 0]), p), [0, 1, 0])
+    # Scaled up first, the same quaternion is the turn it names.
+    scaled = jq.angle_between(p * np.float32(2.0**100), identity)
+    np.testing.assert_allclose(scaled, 2 * np.arctan(0.25), rtol=1e-6)
+
+
 # ---------------------------------------------------------------------------------------------------
 # check_unit
 
