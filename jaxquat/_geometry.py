@@ -271,7 +271,9 @@ def mean(
         raise ValueError(
             f"`axis` {axis} is out of range for the batch shape {tuple(q.shape[:-1])} of `q`."
         )
-    axis = tuple(sorted({n % batch_ndim for n in axis}))
+    if len({n % batch_ndim for n in axis}) < len(axis):
+        raise ValueError(f"`axis` {axis} repeats an axis (as in NumPy, each may appear once).")
+    axis = tuple(sorted(n % batch_ndim for n in axis))
     count = math.prod(q.shape[n] for n in axis)
     if count == 0:
         raise ValueError(

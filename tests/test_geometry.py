@@ -519,3 +519,11 @@ def test_mean_axis_accepts_numpy_integers_and_rejects_bools():
     for axis in (True, (0, False), np.bool_(True)):
         with pytest.raises(ValueError, match="`axis` must be None, an int or a tuple of ints"):
             jq.mean(q, axis=axis)
+
+
+def test_mean_axis_repeated_is_refused():
+    """A repeated axis (also as a negative alias) was quietly de-duplicated, where NumPy raises."""
+    q = jq.random(jax.random.key(4), (3, 2))
+    for axis in ((0, 0), (0, -2), (1, -1, 0)):
+        with pytest.raises(ValueError, match=r"`axis` .* repeats an axis"):
+            jq.mean(q, axis=axis)
