@@ -249,8 +249,8 @@ def mean(
       weight then gives a meaningless result, a non-finite one NaN).
       Weights that sum to zero over the averaged axes leave nothing to average: a `ValueError`, and
       NaN under `jit` (SciPy returns the identity).
-    - `axis`: the batch axes to average over: `None` (all, SciPy's default), an int or a tuple. They
-      must hold at least one quaternion (else `ValueError`).
+    - `axis`: the batch axes to average over: `None` (all, SciPy's default), an int or a tuple (each
+      axis once). They must hold at least one quaternion (else `ValueError`).
 
     **Returns:** the mean rotation, w ≥ 0 (it is a sign-invariant output), shape of the batch axes
     that were not averaged + `(4,)`.
