@@ -920,21 +920,13 @@ def test_sampled_euler_forward_and_derivatives_agree(renormalize_every, frame, g
     np.testing.assert_allclose(dq, fd_q, atol=1e-8)
 
 
-@pytest.mark.parametrize("frame", ["world", "body"])
-@pytest.mark.parametrize("renormalize_every", [None, 7])
-@pytest.mark.parametrize("case", ["random", "rest", "near_pi", "non_unit_q0"])
-def test_constant_omega_closed_form_derivative(frame, renormalize_every, case, getkey):
-    """Constant ω + euler, final state: the derivative is the closed form of d(r^T ⊗ q₀) (doubling sums
-    of Ad_{r^m}, _fastpath._constant_final), not AD through the loop. jacfwd and jacrev w.r.t. q₀, ω
-    and Δt equal AD through the general scan (the same ω given as a callable), at rest, with a step
-    of nearly π, and for a non-unit q₀ with and without renormalisation."""
-    steps, dt = 37, 0.1
-    q0 = random_unit(getkey(), (2,)) * (1.7 if case == "non_unit_q0" else 1.0)
-    w = jax.random.normal(getkey(), (2, 3))
-    if case == "rest":
-        w = jnp.zeros_like(w)
-    if case == "near_pi":
-        w = w / jnp.linalg.norm(w, axis=-1, keepdims=True) * (np.pi - 1e-3) / dt
+@functools.partial(jax.jit, static_argnames=("frame", "renormalize_every"))
+def _closed_form_and_general_derivatives(q0, w, dt, target, direction, *, frame, renormalize_every):
+    """For `test_constant_omega_closed_form_derivative`, one compilation per (frame, renormalisation)
+    for all its cases (the data are arguments): the fast path's value, jacfwd and jacrev w.r.t. q₀, ω
+    and Δt, AD (jacrev) through the general scan given the same ω as a callable, and a loss's
+    Hessian-vector product with its central difference."""
+    steps, eps = 37, 1e-5
 
     def fast(q, w, h):
         return jq.integrate(
@@ -952,23 +944,56 @@ def test_constant_omega_closed_form_derivative(frame, renormalize_every, case, g
             renormalize_every=renormalize_every,
         )
 
-    args = (q0, w, jnp.asarray(dt))
-    np.testing.assert_allclose(fast(*args), general(*args), atol=1e-13)
+    args = (q0, w, dt)
+    out = {"fast": fast(*args), "general": general(*args)}
     for argnum in range(3):
-        reference = jax.jacrev(general, argnums=argnum)(*args)
-        np.testing.assert_allclose(jax.jacfwd(fast, argnums=argnum)(*args), reference, atol=1e-10)
-        np.testing.assert_allclose(jax.jacrev(fast, argnums=argnum)(*args), reference, atol=1e-10)
-    # Second order goes through the rule too: the Hessian-vector product of a loss matches FD.
-    target = random_unit(getkey(), (2,))
+        out[f"reference{argnum}"] = jax.jacrev(general, argnums=argnum)(*args)
+        out[f"jacfwd{argnum}"] = jax.jacfwd(fast, argnums=argnum)(*args)
+        out[f"jacrev{argnum}"] = jax.jacrev(fast, argnums=argnum)(*args)
 
     def loss(w):
         return jnp.sum(jq.multiply(jq.conjugate(target), fast(q0, w, dt))[..., 1:] ** 2)
 
+    out["hvp"] = jax.jvp(jax.grad(loss), (w,), (direction,))[1]
+    out["fd"] = (jax.grad(loss)(w + eps * direction) - jax.grad(loss)(w - eps * direction)) / (
+        2 * eps
+    )
+    return out
+
+
+@pytest.mark.parametrize("frame", ["world", "body"])
+@pytest.mark.parametrize("renormalize_every", [None, 7])
+@pytest.mark.parametrize("case", ["random", "rest", "near_pi", "non_unit_q0"])
+def test_constant_omega_closed_form_derivative(frame, renormalize_every, case, getkey):
+    """Constant ω + euler, final state: the derivative is the closed form of d(r^T ⊗ q₀) (doubling sums
+    of Ad_{r^m}, _fastpath._constant_final), not AD through the loop. jacfwd and jacrev w.r.t. q₀, ω
+    and Δt equal AD through the general scan (the same ω given as a callable), at rest, with a step
+    of nearly π, and for a non-unit q₀ with and without renormalisation. Second order goes through
+    the rule too: the Hessian-vector product of a loss matches central differences."""
+    dt = 0.1
+    q0 = random_unit(getkey(), (2,)) * (1.7 if case == "non_unit_q0" else 1.0)
+    w = jax.random.normal(getkey(), (2, 3))
+    if case == "rest":
+        w = jnp.zeros_like(w)
+    if case == "near_pi":
+        w = w / jnp.linalg.norm(w, axis=-1, keepdims=True) * (np.pi - 1e-3) / dt
+    target = random_unit(getkey(), (2,))
     direction = jax.random.normal(getkey(), w.shape)
-    hvp = jax.jvp(jax.grad(loss), (w,), (direction,))[1]
-    eps = 1e-5
-    fd = (jax.grad(loss)(w + eps * direction) - jax.grad(loss)(w - eps * direction)) / (2 * eps)
-    np.testing.assert_allclose(hvp, fd, atol=1e-6)
+    out = _closed_form_and_general_derivatives(
+        q0, w, jnp.asarray(dt), target, direction, frame=frame, renormalize_every=renormalize_every
+    )
+    np.testing.assert_allclose(out["fast"], out["general"], atol=1e-13)
+    for argnum in range(3):
+        reference = out[f"reference{argnum}"]
+        np.testing.assert_allclose(out[f"jacfwd{argnum}"], reference, atol=1e-10)
+        np.testing.assert_allclose(out[f"jacrev{argnum}"], reference, atol=1e-10)
+    np.testing.assert_allclose(out["hvp"], out["fd"], atol=1e-6)
+    # The eager call (no outer jit) takes the same path.
+    if case == "random":
+        eager = jq.integrate(
+            q0, w, dt, 37, save="final", frame=frame, renormalize_every=renormalize_every
+        )
+        np.testing.assert_allclose(eager, out["fast"], atol=1e-13)
 
 
 @pytest.mark.parametrize("frame", FRAMES)
