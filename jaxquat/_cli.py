@@ -798,9 +798,14 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     if result.total_angle is not None:
         total = np.asarray(result.total_angle, dtype=np.float64)
         rows.append(("total rotation (mean / max)", f"{total.mean():.3f} / {total.max():.3f} rad"))
-    saved = (
-        "final state" if not config["save_every"] else f"states every {config['save_every']} steps"
-    )
+    saved = "final state"
+    if config["save_every"]:
+        every, steps = config["save_every"], config["steps"]
+        # The saved steps are 0, k, 2k, …; the last step is among them only when k divides the steps.
+        saved = (
+            f"{_count(steps // every + 1, 'state')} (every {'step' if every == 1 else f'{every:,} steps'}, "
+            f"steps 0 to {steps // every * every}) and the final state"
+        )
     rows.append(
         ("written", f"{_directory(config['output'])} ({saved}; read with jaxquat.load_ensemble)")
     )

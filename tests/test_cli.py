@@ -261,6 +261,7 @@ def test_simulate_from_toml_writes_a_readable_ensemble(tmp_path, capsys):
     )
     assert status == 0, err
     assert "300 kinematic bodies, 60 steps" in out and "throughput" in out
+    assert "(7 states (every 10 steps, steps 0 to 60) and the final state;" in out
     # 18,000 body-steps in about a second (compile included): three significant figures, not "0.0 M".
     rate = re.search(r"throughput\s+([0-9.]+) ([kMG]?) ?body-steps/s", out)
     assert rate is not None, out
@@ -296,6 +297,7 @@ def test_simulate_rigid_bodies_from_options(tmp_path, capsys):
     )
     assert status == 0, err
     assert "rigid bodies" in out and "cf4 / body / float64" in out
+    assert "(final state;" in out
     data = jaxquat.load_ensemble(tmp_path / "rigid")
     assert data["final"].dtype == np.float64 and "total_angle" not in data
 
@@ -586,3 +588,22 @@ def test_a_stdout_that_cannot_encode_the_summary_does_not_fail_the_run(tmp_path)
     assert done.returncode == 0, done.stderr
     assert b"angle from start" in done.stdout and b"?" in done.stdout and done.stderr == b""
     assert jaxquat.load_ensemble(tmp_path / "run")["final"].shape == (2, 4)
+
+
+@pytest.mark.parametrize(
+    "steps, every, saved",
+    [
+        (7, 50, "1 state (every 50 steps, steps 0 to 0)"),
+        (7, 3, "3 states (every 3 steps, steps 0 to 6)"),
+        (2, 1, "3 states (every step, steps 0 to 2)"),
+    ],
+)
+def test_simulate_says_which_steps_it_saved(tmp_path, capsys, steps, every, saved):
+    """The summary said "states every 50 steps" for a run of 7 steps, which saves step 0 alone (a
+    review): the saved steps are 0, k, 2k, …, and the last step only when k divides the steps."""
+    argv = ["simulate", "--bodies", "3", "--steps", str(steps), "--save-every", str(every)]
+    status, out, err = _run([*argv, "--no-progress", "--output", tmp_path / "run"], capsys)
+    assert status == 0, err
+    assert f"({saved} and the final state;" in out
+    data = jaxquat.load_ensemble(tmp_path / "run")
+    assert data["states"].shape[0] == int(saved.split()[0])
