@@ -802,10 +802,9 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     if config["save_every"]:
         every, steps = config["save_every"], config["steps"]
         # The saved steps are 0, k, 2k, …; the last step is among them only when k divides the steps.
-        saved = (
-            f"{_count(steps // every + 1, 'state')} (every {'step' if every == 1 else f'{every:,} steps'}, "
-            f"steps 0 to {steps // every * every}) and the final state"
-        )
+        period = "every step" if every == 1 else f"every {every:,} steps"
+        last = steps // every * every
+        saved = f"{_count(steps // every + 1, 'state')} ({period}, steps 0 to {last}) and the final state"
     rows.append(
         ("written", f"{_directory(config['output'])} ({saved}; read with jaxquat.load_ensemble)")
     )

@@ -286,13 +286,12 @@ def mean(
         weights = as_float_array(weights, "weights")
         given = None if is_tracer(weights) else np.asarray(weights)
         if given is not None:  # the index in the weights as given, before broadcasting
-            values = given
-            bad = ~(np.isfinite(values) & (values >= 0))  # NaN is bad (SciPy: LinAlgError)
+            bad = ~(np.isfinite(given) & (given >= 0))  # NaN is bad (SciPy: LinAlgError)
             if bad.any():
                 index = tuple(int(i) for i in np.argwhere(bad)[0])
                 raise ValueError(
                     "`weights` must be finite and non-negative (as for SciPy's `Rotation.mean`); "
-                    f"got {values[index]} at index {index}."
+                    f"got {given[index]} at index {index}."
                 )
         try:
             weights = jnp.broadcast_to(weights, q.shape[:-1])
