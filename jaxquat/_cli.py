@@ -1018,7 +1018,10 @@ def _from_origin(origin: str | None, offset: float) -> float:
 
 
 def _first_time(origin: str | None, t0: float) -> str:
-    """t0 as the file wrote it (1e15 + 0.3 is 1000000000000000.25 as a double), unless long."""
+    """t0 as the file wrote it (1e15 + 0.3 is 1000000000000000.25 as a double), unless long; a
+    first time of zero (no origin kept) as 0, as a file writes it, not the double's repr 0.0."""
+    if origin is None and t0 == 0:
+        return "0"
     return origin if origin is not None and len(origin) <= 40 else repr(t0)
 
 
