@@ -103,6 +103,15 @@ def no_rotation(q: Array) -> Array:
     return jnp.all(q == 0, axis=-1) | jnp.any(jnp.isinf(q), axis=-1)
 
 
+def canonical_sign(q: Array) -> Array:
+    """The representative of ±q with w ≥ 0, ties at w = 0 broken like SciPy's canonical form (the
+    first non-zero of x, y, z positive), so that an exact half-turn has one sign however it was
+    computed. Gradient: ±identity, by the locally constant sign."""
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    flip = (w < 0) | ((w == 0) & ((x < 0) | ((x == 0) & ((y < 0) | ((y == 0) & (z < 0))))))
+    return jnp.where(flip[..., None], -q, q)
+
+
 @eager_jit()
 def inverse(q: ArrayLike) -> Array:
     """The inverse q⁻¹ = q*/|q|² (for unit quaternions, the conjugate). NaN for q = 0 and for an

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from ._algebra import conjugate, multiply
+from ._algebra import canonical_sign, conjugate, multiply
 from ._numerics import (
     as_float_array,
     broadcast_batch,
@@ -175,10 +175,7 @@ def canonicalize(q: ArrayLike) -> Array:
 
     **Arguments:** `q`, shape `(..., 4)`. **Returns:** shape `(..., 4)`.
     """
-    q = check_trailing(q, 4, "q")
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    flip = (w < 0) | ((w == 0) & ((x < 0) | ((x == 0) & ((y < 0) | ((y == 0) & (z < 0))))))
-    return jnp.where(flip[..., None], -q, q)
+    return canonical_sign(check_trailing(q, 4, "q"))
 
 
 def random(key: Array, shape: int | tuple[int, ...] = (), dtype=None) -> Array:

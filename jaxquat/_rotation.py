@@ -5,12 +5,10 @@ Active rotations with the right-hand rule: v' = q v q⁻¹. Quaternions are (w, 
 
 from __future__ import annotations
 
-import math
-
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
-from ._algebra import no_rotation
+from ._algebra import canonical_sign, no_rotation
 from ._numerics import (
     as_float_array,
     atan2_over,
@@ -265,7 +263,8 @@ def from_matrix(m: ArrayLike) -> Array:
       returned, with NaN derivatives.
 
     **Returns:** unit quaternions, shape `(..., 4)`, canonicalised to w ≥ 0 (q and −q are the same
-    rotation; `from_matrix(to_matrix(q))` is ±q).
+    rotation; `from_matrix(to_matrix(q))` is ±q); at w = 0 exactly, as `canonicalize` and SciPy's
+    canonical form, the first non-zero of x, y, z is positive.
 
     **Gradient:** by perturbation theory of the simple top eigenvalue (`_numerics.top_eigenvector`):
     smooth wherever the nearest rotation is unique, finite at the identity. The sign choice w ≥ 0 makes
@@ -298,7 +297,9 @@ def from_matrix(m: ArrayLike) -> Array:
     # eigenvector's, so derivatives are unchanged; trace K = 0 makes λ₁ + 1 ≥ 1 (no amplification).
     q = jnp.einsum("...ij,...j->...i", k, q) + q
     q = q / jnp.sqrt(sum_squares(q, keepdims=True))
-    return jnp.where(q[..., :1] < 0, -q, q)
+    # w ≥ 0; at an exact half-turn (w = 0, e.g. any symmetric matrix of trace −1) the power steps and
+    # `eigh` return either sign, so the result depended on the rest of the batch: SciPy's tie rule.
+    return canonical_sign(q)
 
 
 _AXIS_INDEX = {"x": 0, "y": 1, "z": 2}
@@ -387,8 +388,8 @@ def to_euler(q: ArrayLike, seq: str) -> Array:
     random middle angles below 1e-6, against exact values from mpmath).
     The first and third angles lie in [−π, π]; the middle one in [0, π] for proper Euler sequences
     (`zxz`, …) and in [−π/2, π/2] for Tait–Bryan ones (`xyz`, …). Within 1e-7 of gimbal lock
-    (middle angle 0 or π; ±π/2 for Tait–Bryan; at π, in float32, within 4π·eps ≈ 1.5e-6, the
-    resolution of float32 there) the split between first and third angle is not unique:
+    (middle angle 0 or π; ±π/2 for Tait–Bryan; the distance to the lock computed without
+    cancellation, in float32 too) the split between first and third angle is not unique:
     as SciPy does, the third angle is set to 0 — without SciPy's warning, since values are not
     inspected under `jit`.
 
@@ -422,11 +423,11 @@ def to_euler(q: ArrayLike, seq: str) -> Array:
     norm_ab = safe_norm(jnp.stack([a, b], axis=-1))
     norm_cd = safe_norm(jnp.stack([c, d], axis=-1))
     middle = 2.0 * jnp.arctan2(norm_cd, norm_ab)
-    # SciPy's 1e-7; at π widened to a few ulp of π, where the dtype cannot resolve 1e-7 (float32).
-    # Near 0 float32 resolves far less than 1e-7, so the lock there keeps SciPy's threshold.
-    lock_eps_pi = max(_GIMBAL_LOCK_EPS, 4.0 * math.pi * float(jnp.finfo(middle.dtype).eps))
+    # SciPy's 1e-7 on both sides. The distance from π is 2·atan2(|a, b|, |c, d|), not π − middle:
+    # that difference cancels (float32 cannot hold π − 1e-7 apart from π: it needed a window of
+    # 4π·eps ≈ 1.5e-6, which locked rotations whose split float32 still determines to ~1e-7).
     at_zero = jnp.abs(middle) <= _GIMBAL_LOCK_EPS
-    at_pi = jnp.abs(middle - jnp.pi) <= lock_eps_pi
+    at_pi = 2.0 * jnp.arctan2(norm_ab, norm_cd) <= _GIMBAL_LOCK_EPS
     regular = ~(at_zero | at_pi)
     locked = jnp.where(at_zero, 2.0 * half_sum, (-2.0 if extrinsic else 2.0) * half_diff)
     zero = jnp.zeros_like(middle)

@@ -271,6 +271,36 @@ def test_euler_gimbal_lock_follows_scipy(seq):
 # from_matrix: the nearest rotation (acceptance 6), and derivatives.
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_from_matrix_sign_of_an_exact_half_turn_does_not_depend_on_the_batch(dtype):
+    """A symmetric matrix of trace −1 gives w = 0 exactly; the sign was left to the eigensolver, and
+    the power steps (a batch of rotations) and `eigh` (a batch holding any other matrix) disagreed:
+    adding a matrix to the batch negated the result. Ties are broken as SciPy's canonical form."""
+    rng = np.random.default_rng(8)
+    axes = np.concatenate([np.ones((1, 3)) / np.sqrt(3.0), rng.normal(size=(40, 3))])
+    axes[[1, 2, 3]] = np.eye(3)[[2, 1, 0]]  # half-turns about z, y, x: x (and y) are zero there
+    axes /= np.linalg.norm(axes, axis=-1, keepdims=True)
+    m = (2.0 * axes[:, :, None] * axes[:, None, :] - np.eye(3)).astype(dtype)
+    alone = np.asarray(jq.from_matrix(m))
+    with_other = np.asarray(jq.from_matrix(np.concatenate([m, [np.diag([1.0, 2.0, 3.0])]])))[:-1]
+    single = np.stack([np.asarray(jq.from_matrix(x)) for x in m[:4]])
+    tolerance = 1e-6 if dtype == np.float32 else 1e-14
+    np.testing.assert_allclose(with_other, alone, rtol=0, atol=tolerance)
+    np.testing.assert_allclose(single, alone[:4], rtol=0, atol=tolerance)
+    # The rotation is SciPy's; where w is exactly 0 the sign is that of SciPy's canonical form
+    # (first non-zero of x, y, z positive; SciPy on these float32 matrices in float64 sees w ≠ 0).
+    theirs = Rotation.from_matrix(m.astype(np.float64)).as_quat(canonical=True, scalar_first=True)
+    assert quat_distance(alone, theirs) < 10 * tolerance
+    tie = alone[:, 0] == 0
+    assert tie[:4].all() and np.all(alone[:, 0] >= 0)
+    first_nonzero = np.take_along_axis(
+        alone[tie, 1:], np.argmax(alone[tie, 1:] != 0, 1)[:, None], 1
+    )
+    assert np.all(first_nonzero > 0)
+    if dtype == np.float64:
+        np.testing.assert_allclose(alone, theirs, rtol=0, atol=tolerance)
+
+
 def test_from_matrix_is_the_nearest_rotation_and_differentiable():
     rng = np.random.default_rng(4)
     q = np.asarray(random_unit(jax.random.key(4), (200,)))
@@ -561,6 +591,28 @@ def test_to_euler_float32_near_zero_middle_angle_is_not_locked():
         ours = np.asarray(jq.to_euler(q, seq), np.float64)
         assert np.max(np.abs(wrapped(ours - theirs))) < 2e-6
         assert quat_distance(jq.from_euler(seq, ours), q) < 5e-7
+
+
+@pytest.mark.parametrize("seq", ["zxz", "ZXZ", "yzy", "xyz", "XYZ", "zyx"])
+def test_to_euler_float32_near_the_pi_lock_is_scipys_on_the_same_input(seq):
+    """The lock at π (Tait–Bryan: +π/2) is SciPy's 1e-7 in float32 too: its window was 4π·eps ≈
+    1.5e-6, as π − middle cancels, and a rotation 1e-6 from the lock came back with its third angle
+    0 and 1.1e-6 rad off. The reference: SciPy in float64 on the same float32 quaternions, and the
+    rotation itself; inputs exactly at the lock (built in float32) still lock, as SciPy's do."""
+    lock = np.pi if seq[0].lower() == seq[2].lower() else np.pi / 2
+    for distance in (2e-7, 1e-6, 1.4e-6, 0.0):
+        angles = np.array([[0.3, lock - distance, -1.1], [-2.5, lock - distance, 0.7]])
+        q = Rotation.from_euler(seq, angles).as_quat(scalar_first=True).astype(np.float32)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", "Gimbal lock detected", UserWarning)
+            theirs = Rotation.from_quat(q.astype(np.float64), scalar_first=True).as_euler(seq)
+        ours = np.asarray(jq.to_euler(q, seq), np.float64)
+        assert quat_distance(jq.from_euler(seq, ours), q) < 3e-7, distance
+        if distance == 0.0:
+            np.testing.assert_array_equal(ours[:, 2], 0.0)
+        else:  # (the first and third angles are ill-conditioned near the lock: ~eps / distance)
+            assert np.max(np.abs(wrapped(ours - theirs))) < 0.5, distance
+            assert np.all(ours[:, 2] != 0.0), distance
 
 
 @pytest.mark.parametrize("seq", ["xyz", "zyx", "yzx", "XZY", "ZXY", "YXZ"])
