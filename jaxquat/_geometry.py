@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from ._algebra import canonical_sign, conjugate, multiply
+from ._algebra import canonical_sign, conjugate, exp, log, multiply
 from ._numerics import (
     as_float_array,
     broadcast_batch,
@@ -121,6 +121,12 @@ def squad(p: ArrayLike, a: ArrayLike, b: ArrayLike, q: ArrayLike, t: ArrayLike) 
     its angular velocity is continuous at the keys. (Shoemake 1987, "Quaternion calculus and fast
     animation", SIGGRAPH course notes; Eberly, "Quaternion algebra and calculus".)
 
+    Signs: q is taken on p's side (⟨p, q⟩ ≥ 0), a on p's and b on q's, once per segment; each of the
+    three interpolations then follows the great arc of the unit sphere between its two ends, as in
+    Shoemake's formula, without choosing the short way again at every t (which flipped the curve by
+    a half-turn mid-segment once the keys were more than ~90° apart). The curve therefore depends
+    only on the rotations, not on the signs of the four quaternions.
+
     **Arguments:**
 
     - `p`, `q`: the key orientations at t = 0 and t = 1, shape `(..., 4)`.
@@ -135,7 +141,23 @@ def squad(p: ArrayLike, a: ArrayLike, b: ArrayLike, q: ArrayLike, t: ArrayLike) 
     q = check_trailing(q, 4, "q")
     t = as_float_array(t, "t")
     p, a, b, q, t = broadcast_batch((p, 1, "p"), (a, 1, "a"), (b, 1, "b"), (q, 1, "q"), (t, 0, "t"))
-    return slerp(slerp(p, q, t), slerp(a, b, t), 2.0 * t * (1.0 - t))
+    # Signs fixed once per segment (q on p's side, a on p's, b on q's): the curve is then sign-
+    # invariant, and each interpolation follows the great arc of S³ between its ends as they are,
+    # with no per-t choice of the short way. (The outer `slerp` made that choice at every t, and
+    # flipped the curve by a half-turn mid-segment where the two inner curves passed π apart as
+    # rotations: half of all segments between keys 120° apart.)
+    q = jnp.where(jnp.sum(p * q, axis=-1, keepdims=True) < 0, -q, q)
+    a = jnp.where(jnp.sum(p * a, axis=-1, keepdims=True) < 0, -a, a)
+    b = jnp.where(jnp.sum(q * b, axis=-1, keepdims=True) < 0, -b, b)
+    return _arc(_arc(p, q, t), _arc(a, b, t), 2.0 * t * (1.0 - t))
+
+
+def _arc(p: Array, q: Array, t: Array) -> Array:
+    """p ⊗ exp(t · vec log(p* ⊗ q)): the great arc of S³ from p to q as given (up to a full turn as a
+    rotation; no short-way fold)."""
+    half = log(multiply(conjugate(p), q))[..., 1:]
+    pure = jnp.concatenate([jnp.zeros_like(half[..., :1]), t[..., None] * half], axis=-1)
+    return multiply(p, exp(pure))
 
 
 @eager_jit()
