@@ -428,12 +428,14 @@ def kinetic_energy(omega_body: ArrayLike, inertia: ArrayLike) -> Array:
 
     - `omega_body`: angular velocity, shape `(..., 3)` (body frame with a body-frame inertia; any frame
       works when ω and I are in the same frame).
-    - `inertia`: a `(..., 3, 3)` matrix or principal moments `(..., 3)`.
+    - `inertia`: a symmetric positive-semidefinite `(..., 3, 3)` matrix or principal moments
+      `(..., 3)`: T needs I, not its inverse, so a rod's or a single point mass's inertia (one zero
+      moment, perhaps −1e-16 after rounding) is accepted, as `principal_axes` accepts it.
 
     **Returns:** T, shape `(...)`.
     """
     omega_body = check_trailing(omega_body, 3, "omega_body")
-    inertia = _check_inertia(inertia)
+    inertia = _check_inertia(inertia, semidefinite=True)
     momentum = _apply_inertia(inertia, omega_body, ("inertia", "omega_body"))
     omega_body, momentum = broadcast_batch((omega_body, 1, "omega_body"), (momentum, 1, "inertia"))
     return 0.5 * jnp.sum(omega_body * momentum, axis=-1)

@@ -580,6 +580,20 @@ def test_principal_axes_of_a_rod():
     # The dynamics still require a positive definite inertia.
     with pytest.raises(ValueError, match="positive definite"):
         jq.euler_equations(jnp.ones(3), inertia)
+    # The kinetic energy needs I, not I⁻¹: ½ Σ m |ω × x|², whichever sign the zero moment's rounding
+    # took (it was refused as "not positive definite" about half the time), also as moments.
+    omega = np.array([0.3, 0.4, -0.5])
+    points = offsets[:, None] * direction[None, :]
+    energy = 0.5 * np.sum(masses * np.sum(np.cross(omega, points) ** 2, axis=-1))
+    rng = np.random.default_rng(2)
+    for turn in Rotation.random(12, random_state=rng).as_matrix():
+        turned = turn @ np.asarray(inertia) @ turn.T
+        np.testing.assert_allclose(jq.kinetic_energy(turn @ omega, turned), energy, rtol=1e-13)
+    np.testing.assert_allclose(
+        jq.kinetic_energy(jnp.ones(3), jnp.array([0.0, 1.0, 1.0])), 1.0, rtol=1e-15
+    )
+    with pytest.raises(ValueError, match="positive semidefinite"):
+        jq.kinetic_energy(jnp.ones(3), jnp.array([-1e-3, 1.0, 1.0]))
 
 
 def test_euler_equations_component_form(getkey):
