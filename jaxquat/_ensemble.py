@@ -248,6 +248,16 @@ def _keep_at(kept: tuple[Array, ...], parts: tuple[Array, ...], offset: Array) -
     )
 
 
+def _refuse_traced(x, path: str) -> None:
+    """States traced though no input was: an `omega` or `torque` closing over a traced value."""
+    if is_tracer(x):
+        raise ValueError(
+            "`path`: the run's states are traced (an `omega` or `torque` closes over a value traced "
+            f"by jax.jit, jax.vmap or a derivative), so they cannot be written; {path!r} holds an "
+            "incomplete run. Pass path=None and keep the result in memory."
+        )
+
+
 def _to_host(x: Array) -> np.ndarray:
     """Fetch a (possibly multi-host) sharded array to the host as a NumPy array."""
     if jax.process_count() > 1:
@@ -1185,7 +1195,9 @@ def simulate_ensemble(
       2²⁶ body-steps and at most 2²⁴ saved states per chunk.
     - `path`: a directory to stream the saved states into (one `.npy` file per chunk and an
       `index.json`; read it back with `jaxquat.load_ensemble`). The saved states are then not kept in
-      memory. The final state and statistics are written when the run completes.
+      memory. The final state and statistics are written when the run completes. Only outside JAX
+      transformations: under `jax.jit`, `jax.vmap` or a derivative (a traced input, or any call
+      inside `jit`) `path` is a `ValueError`, raised before the run already in `path` is touched.
     - `devices`: the devices to shard over.
     - `progress`: `False` (default), `True` for a tqdm progress bar on stderr, or a callable
       `progress(steps_done, num_steps)` called between chunks (raising from it, e.g.
@@ -1244,6 +1256,24 @@ def simulate_ensemble(
         check_callable(torque, "torque", "torque(t, q, omega)", 3)
     if path is not None:
         path = _check_path(path)
+        # Before anything is written (the writer replaces the run already in `path`): traced data
+        # cannot be fetched to the host. Under `jax.jit` every value is traced, even a constant.
+        inputs = {
+            "q0": q0,
+            "omega": omega,
+            "dt": dt,
+            "t0": t0,
+            "inertia": inertia,
+            "torque": torque,
+        }
+        traced = [n for n, x in inputs.items() if any(map(is_tracer, jax.tree_util.tree_leaves(x)))]
+        if traced or is_tracer(jnp.zeros(())):
+            what = f"`{'`, `'.join(traced)}` traced" if traced else "inside jax.jit"
+            raise ValueError(
+                f"`path`: a run under a JAX transformation ({what}: jax.jit, jax.vmap or a "
+                "derivative) cannot be written to disk; pass path=None and keep the result in "
+                "memory, or call simulate_ensemble with `path` outside the transformation."
+            )
 
     q0 = check_trailing(q0, 4, "q0")
     omega_fn = None
@@ -1415,11 +1445,6 @@ def simulate_ensemble(
                 f"`dt` = {float(dt)!r}, `t0` = {float(t0)!r}: the time t0 + k·dt of saved step "
                 f"k = {k} overflows float64; use a smaller |dt| or |t0|, or fewer steps."
             )
-    if path is not None and traced_time:
-        raise ValueError(
-            "`path`: a run whose `dt` or `t0` is traced (under jax.jit or a derivative) cannot be "
-            "written to disk; pass path=None and keep the result in memory."
-        )
     writer = None
     if path is not None and jax.process_index() == 0:
         index_metadata = dict(
@@ -1445,6 +1470,7 @@ def simulate_ensemble(
     def keep_or_write(saved, steps, steps_done):
         nonlocal kept, num_kept
         if writer is not None:
+            _refuse_traced(saved[0], writer.path)
             arrays = {"states": unpad_time_major(_to_host(saved[0]), 4)}
             if dynamic:
                 arrays["omegas"] = unpad_time_major(_to_host(saved[1]), 3)
@@ -1538,6 +1564,7 @@ def simulate_ensemble(
         arrays = {"final": final, "final_omega": final_omega, "angle_from_start": angle_from_start}
         if statistics:
             arrays.update(total_angle=total_angle, max_angle_from_start=max_angle)
+        _refuse_traced(final, writer.path)
         writer.finish({k: _to_host(v) for k, v in arrays.items()})
     jax.block_until_ready((final, final_omega))
     return EnsembleResult(

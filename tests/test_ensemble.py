@@ -977,7 +977,7 @@ def test_derivatives_in_dt_and_t0_with_saved_states(tmp_path):
             saved(0.05 + shift[0], 1.0 + shift[1]) - saved(0.05 - shift[0], 1.0 - shift[1])
         ) / (2 * h)
         np.testing.assert_allclose(gradient, central, rtol=1e-7)
-    with pytest.raises(ValueError, match="`path`: a run whose `dt` or `t0` is traced"):
+    with pytest.raises(ValueError, match="`path`: a run under a JAX transformation .`dt` traced"):
         jax.grad(
             lambda dt: jnp.sum(
                 jaxquat.simulate_ensemble(
@@ -985,6 +985,46 @@ def test_derivatives_in_dt_and_t0_with_saved_states(tmp_path):
                 ).saved
             )
         )(0.05)
+
+
+def test_writing_under_a_transformation_is_refused_before_the_previous_run_is_touched(tmp_path):
+    """Under jax.jit (even with constant inputs), jax.grad or jax.vmap the states are traced and
+    cannot be written. Only a traced `dt` or `t0` was refused; a traced `q0` or `omega`, or any
+    call under jit, replaced the run already in `path` and then failed in NumPy
+    (TracerArrayConversionError), leaving an incomplete run. An `omega` closing over a traced value
+    is seen only when its states are: a ValueError naming `path` then too."""
+    q0 = jaxquat.random(jax.random.key(0), (8,))
+    omega = jnp.ones((8, 3))
+    path = tmp_path / "run"
+
+    def run(q, w, **kwargs):
+        return jaxquat.simulate_ensemble(q, w, 0.1, 5, save_every=1, path=path, **kwargs)
+
+    run(q0, omega)
+    before = jaxquat.load_ensemble(path)["states"]
+    assert before.shape == (6, 8, 4)
+    calls = {
+        "inside jax.jit": lambda: jax.jit(lambda: run(q0, omega).final)(),
+        "`q0` traced": lambda: jax.jit(lambda q: run(q, omega).final)(q0),
+        "`omega` traced": lambda: jax.grad(lambda w: jnp.sum(run(q0, w).final))(omega),
+        "`q0`, `omega` traced": lambda: jax.vmap(lambda q, w: run(q, w).final)(
+            q0[None], omega[None]
+        ),
+    }
+    for what, call in calls.items():
+        with pytest.raises(ValueError, match=f"`path`: a run under a JAX transformation .{what}"):
+            call()
+        loaded = jaxquat.load_ensemble(path)
+        assert loaded["complete"]
+        np.testing.assert_array_equal(loaded["states"], before)
+    with pytest.raises(ValueError, match="`path`: the run's states are traced"):
+        jax.grad(lambda s: jnp.sum(run(q0, lambda t, q: s * omega[0]).final))(1.0)
+    with pytest.raises(ValueError, match="`path`: the run's states are traced"):
+        jax.grad(
+            lambda s: jnp.sum(
+                jaxquat.simulate_ensemble(q0, lambda t, q: s * omega[0], 0.1, 5, path=path).final
+            )
+        )(1.0)
 
 
 def test_float32_total_angle_is_a_compensated_sum():
