@@ -24,6 +24,7 @@ import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
 from functools import partial, wraps
+from tokenize import TokenError
 from typing import Any
 
 import equinox as eqx
@@ -484,7 +485,13 @@ class _StateWriter:
             if entries:
                 self._remove_previous(index_path)
         else:
-            os.makedirs(self.path)
+            try:
+                os.makedirs(self.path)
+            except OSError as e:  # under a file, a dangling symbolic link, no permission, ...
+                raise ValueError(
+                    f"`path` {self.path!r} cannot be created as a directory "
+                    f"({type(e).__name__}: {e.strerror or e})."
+                ) from None
         self.index = dict(
             metadata,
             format=_FORMAT,
@@ -748,7 +755,9 @@ def _load_array(path: str, name, where: str, label: str, shape: tuple, dtype) ->
         raise _MalformedEnsemble(
             f"malformed jaxquat ensemble: {name}, {where}, is missing."
         ) from None
-    except (OSError, ValueError, EOFError) as e:  # EOFError: an empty (zero-length) file
+    # EOFError: an empty (zero-length) file. A damaged header NumPy cannot parse directly goes to
+    # `tokenize` and `ast.literal_eval`: TokenError, SyntaxError, TypeError or RecursionError.
+    except (OSError, ValueError, EOFError, TokenError, SyntaxError, TypeError, RecursionError) as e:
         raise _MalformedEnsemble(
             f"malformed jaxquat ensemble: {name}, {where}, is not a readable .npy file "
             f"({type(e).__name__}: {e})."

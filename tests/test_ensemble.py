@@ -601,6 +601,11 @@ def test_bad_paths(tmp_path):
     args = (np.array([1.0, 0, 0, 0]), np.zeros(3), 0.1, 2)
     with pytest.raises(ValueError, match="not a directory"):
         simulate_ensemble(*args, path=tmp_path / "file", save_every=1)
+    # Paths that cannot be made: under a file, a dangling symbolic link (were raw OSErrors).
+    (tmp_path / "dangling").symlink_to(tmp_path / "nowhere")
+    for where, why in [("file/run", "NotADirectoryError"), ("dangling", "FileExistsError")]:
+        with pytest.raises(ValueError, match=f"`path` .*{where}' cannot be created.*{why}"):
+            simulate_ensemble(*args, path=tmp_path / where, save_every=1)
     with pytest.raises(ValueError, match="not a jaxquat ensemble"):
         simulate_ensemble(*args, path=tmp_path / "other", save_every=1)
     assert (tmp_path / "other" / "notes.txt").read_text() == "keep me"

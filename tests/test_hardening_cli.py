@@ -562,6 +562,14 @@ def _rewrite_index(run, edit):
     (run / "index.json").write_text(json.dumps(index))
 
 
+def _unclosed_header(run):
+    """final.npy's header with its shape's `)` blanked: NumPy's header parser then tokenizes it and
+    raises tokenize.TokenError, which is neither a ValueError nor an OSError."""
+    data = (run / "final.npy").read_bytes()
+    end = data.index(b"), }")
+    (run / "final.npy").write_bytes(data[:end] + b" " + data[end + 1 :])
+
+
 def _huge_step_counts(index):
     index.update(steps_done=10**20, num_steps=10**20, complete=False)
     index["records"][-1]["steps"] = [10**19]
@@ -573,6 +581,10 @@ def _huge_step_counts(index):
         (
             lambda run: (run / "states_000001.npy").write_bytes(b""),  # was an EOFError
             r"states_000001.npy, record 1 \(states\), is not a readable .npy file \(.*EOF",
+        ),
+        (
+            _unclosed_header,  # was a tokenize.TokenError
+            r"final.npy, .*is not a readable .npy file \(TokenError",
         ),
         (
             lambda run: _rewrite_index(run, _huge_step_counts),  # was an OverflowError
@@ -610,6 +622,7 @@ def _huge_step_counts(index):
     ],
     ids=[
         "empty-npy",
+        "unclosed-header",
         "huge-steps",
         "deep-json",
         "version",
