@@ -1132,7 +1132,17 @@ def _on_own_mesh(simulate: Callable) -> Callable:
         )
         if not explicit_mesh():
             return call(**kwargs)
-        with jax.set_mesh(body_sharding(devices).mesh):
+        try:
+            context = jax.set_mesh(body_sharding(devices).mesh)
+        except ValueError:  # JAX sets no concrete mesh while tracing
+            raise ValueError(
+                "simulate_ensemble under jax.jit, jax.vmap or a derivative cannot run inside "
+                "`jax.set_mesh` with a mesh of explicit axes (jax.make_mesh's default): it lays "
+                "the bodies out on a mesh of its own. Call it outside the transformation, or "
+                "outside `jax.set_mesh`, or make the mesh with automatic axes "
+                "(`axis_types=(jax.sharding.AxisType.Auto,)`)."
+            ) from None
+        with context:
             return call(**kwargs)
 
     return run
@@ -1207,7 +1217,10 @@ def simulate_ensemble(
       memory. The final state and statistics are written when the run completes. Only outside JAX
       transformations: under `jax.jit`, `jax.vmap` or a derivative (a traced input, or any call
       inside `jit`) `path` is a `ValueError`, raised before the run already in `path` is touched.
-    - `devices`: the devices to shard over.
+    - `devices`: the devices to shard over. The bodies are laid out on a mesh of their own over
+      them, whatever mesh `jax.set_mesh` has set; under `jax.jit`, `jax.vmap` or a derivative, where
+      JAX sets no concrete mesh, the set mesh's axes must be automatic (explicit axes, the default of
+      `jax.make_mesh`, are a `ValueError` saying so).
     - `progress`: `False` (default), `True` for a tqdm progress bar on stderr, or a callable
       `progress(steps_done, num_steps)` called between chunks (raising from it, e.g.
       `KeyboardInterrupt`, stops the run and leaves `path` readable with the completed chunks).

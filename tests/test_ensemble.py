@@ -1032,6 +1032,37 @@ def test_writing_under_a_transformation_is_refused_before_the_previous_run_is_to
         )(1.0)
 
 
+def test_under_a_transformation_inside_an_explicit_mesh_is_a_clear_error():
+    """The ensemble sets a mesh of its own inside a caller's `jax.set_mesh` of explicit axes, which
+    JAX refuses while tracing: under jax.jit or jax.grad that was JAX's "`set_mesh` can only be used
+    outside of `jax.jit`". Now a ValueError that says what to do; with automatic axes, as it says,
+    the transformed run equals the eager one."""
+    q0 = jaxquat.random(jax.random.key(0), (8,))
+    omega = jax.random.normal(jax.random.key(1), (8, 3))
+
+    def final(q, w, dt=0.05):
+        return jaxquat.simulate_ensemble(q, w, dt, 12, save_every=4).final
+
+    eager = final(q0, omega)
+    gradient = jax.grad(lambda w: jnp.sum(jnp.sin(final(q0, w))))(omega)
+    explicit = jax.make_mesh((1,), ("b",), axis_types=(jax.sharding.AxisType.Explicit,))
+    with jax.set_mesh(explicit):
+        np.testing.assert_array_equal(final(q0, omega), eager)  # eagerly it runs
+        for call in (
+            lambda: jax.jit(final)(q0, omega),
+            lambda: jax.jit(lambda dt: final(q0, omega, dt))(0.05),
+            lambda: jax.grad(lambda w: jnp.sum(final(q0, w)))(omega),
+        ):
+            with pytest.raises(ValueError, match="cannot run inside `jax.set_mesh` with a mesh of"):
+                call()
+    automatic = jax.make_mesh((1,), ("b",), axis_types=(jax.sharding.AxisType.Auto,))
+    with jax.set_mesh(automatic):
+        np.testing.assert_allclose(jax.jit(final)(q0, omega), eager, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(
+            jax.grad(lambda w: jnp.sum(jnp.sin(final(q0, w))))(omega), gradient, rtol=1e-14
+        )
+
+
 def test_float32_total_angle_is_a_compensated_sum():
     """The total angle of a long float32 run is Σ |ω|Δt to float32's round-off of the step angles,
     not of the running sum: 20,000 steps of ~0.035 rad summed plainly in float32 came out 2.6e-4
