@@ -91,9 +91,13 @@ class EnsembleResult(eqx.Module):
 
     Arrays keep the ensemble's batch shape `batch` (the broadcast leading shape of `q0` and `omega`) and
     stay on the devices, sharded over bodies (`result.sharding`) when the number of bodies is a multiple
-    of the device count. Otherwise the padding bodies are dropped at the end and JAX, which needs even
-    shards, lays the (unpadded) results out replicated; choose a multiple of the device count to keep
-    them sharded.
+    of the device count: each device keeps the bodies it computed. For a batch of several axes that is
+    a sharding of the leading axes whole and then one evenly (on 4 devices `(8, 3)` over axis 0,
+    `(2, 4)` and `(2, 6)` over both on a 2 × 2 mesh with axes `"bodies"`, `"bodies_1"`); where the
+    blocks of the flattened bodies are no such product (`(3, 4)` on 4 devices: blocks of 3 bodies
+    straddle the rows) the results are replicated. Otherwise the padding bodies are dropped at the end
+    and JAX, which needs even shards, lays the (unpadded) results out replicated; choose a multiple of
+    the device count (and a leading batch axis that splits evenly) to keep them sharded.
 
     **Fields:**
 
@@ -129,7 +133,8 @@ class EnsembleResult(eqx.Module):
 
     @property
     def sharding(self):
-        """The sharding of `final` (over the device mesh's `"bodies"` axis)."""
+        """The sharding of `final` (over the device mesh's `"bodies"` axis, and `"bodies_1"` for a batch
+        split over two axes)."""
         return self.final.sharding
 
     @property
@@ -1108,6 +1113,54 @@ def _on_devices(x: Any, mesh: Mesh | None) -> Any:
     return jax.device_put(x, NamedSharding(mesh, PartitionSpec()))
 
 
+def _batch_layout(batch: tuple[int, ...], mesh: Mesh) -> tuple[Mesh, tuple] | None:
+    """The bodies' mesh reshaped over the batch axes, with the partition spec of those axes, such
+    that each device keeps exactly the bodies it holds in the flattened layout: contiguous blocks of
+    the row-major order, which split the leading axes whole and then one axis evenly (on 4 devices
+    (2, 4) is 2 × 2, (4, 2) is 4 × 1, (3, 4) has none). `None` if there is no such reshape.
+
+    Without it the unflattened results of a multi-axis batch whose first axis the device count does
+    not divide were laid out replicated: 4× the memory on 4 devices."""
+    factors, remaining = [], mesh.size
+    for size in batch:
+        if size % remaining == 0:  # this axis takes what is left of the devices: the last split
+            factors.append(remaining)
+            remaining = 1
+        elif remaining % size == 0:  # split whole, one index per device group
+            factors.append(size)
+            remaining //= size
+        else:
+            return None
+    split = [i for i, f in enumerate(factors) if f > 1]
+    if len(split) <= 1:
+        spec = tuple("bodies" if i in split else None for i in range(len(batch)))
+        return mesh, spec
+    names = tuple("bodies" if k == 0 else f"bodies_{k}" for k in range(len(split)))
+    devices = mesh.devices.reshape(tuple(factors[i] for i in split))
+    spec = tuple(names[split.index(i)] if i in split else None for i in range(len(batch)))
+    return Mesh(devices, names), spec
+
+
+@partial(jax.jit, static_argnames=("num_bodies", "batch", "sharding", "time_major"))
+def _unpad_jit(x, num_bodies, batch, sharding, time_major):
+    x = x[:, :num_bodies] if time_major else x[:num_bodies]
+    lead = x.shape[:1] if time_major else ()
+    x = x.reshape(lead + batch + x.shape[len(lead) + 1 :])
+    return x if sharding is None else jax.lax.with_sharding_constraint(x, sharding)
+
+
+def _unpadded(x, num_bodies, batch, layout, *, time_major):
+    """The bodies of `x` (axis 0, or 1 if `time_major`) without the padding, in the batch shape,
+    laid out over `layout` (see `_batch_layout`) when there is one."""
+    sharding = None
+    if layout is not None:
+        mesh, spec = layout
+        lead = (None,) if time_major else ()
+        trailing = (None,) * (x.ndim - len(lead) - 1)
+        sharding = NamedSharding(mesh, PartitionSpec(*lead, *spec, *trailing))
+    return _unpad_jit(x, num_bodies, batch, sharding, time_major)
+
+
 def _on_own_mesh(simulate: Callable) -> Callable:
     """`simulate_ensemble` on its own mesh, whatever mesh the caller has set: it lays the bodies out
     itself (`body_sharding`), by sharding constraints that a mesh of explicit axes set with
@@ -1486,8 +1539,12 @@ def simulate_ensemble(
             index_metadata["run"] = metadata
         writer = _StateWriter(path, index_metadata)
 
+    layout = _batch_layout(batch, sharding.mesh) if padded == num_bodies else None
+
     def unpad_time_major(x, width):
-        return x[:, :num_bodies].reshape((x.shape[0],) + batch + (width,))
+        if isinstance(x, np.ndarray):  # (fetched to be written)
+            return x[:, :num_bodies].reshape((x.shape[0],) + batch + (width,))
+        return _unpadded(x, num_bodies, batch, layout, time_major=True)
 
     def keep_or_write(saved, steps, steps_done):
         nonlocal kept, num_kept
@@ -1560,9 +1617,7 @@ def simulate_ensemble(
             bar.close()
 
     def unpad(x):
-        if padded != num_bodies:
-            x = x[:num_bodies]
-        return x.reshape(batch + x.shape[1:])
+        return _unpadded(x, num_bodies, batch, layout, time_major=False)
 
     final = state[0]
     if dynamic:

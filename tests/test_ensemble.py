@@ -720,6 +720,23 @@ _SHARDED = textwrap.dedent(
             total=float(np.max(np.abs(np.asarray(sharded.total_angle) - np.asarray(single.total_angle)))),
             shape=list(sharded.final.shape),
         )
+    # Multi-axis batches: each device keeps the bodies it computed where the flattened blocks are
+    # products of per-axis blocks ((2, 4) and (2, 6) on a 2 x 2 mesh), else replicated ((3, 4)).
+    for batch in ((2, 4), (2, 6), (1, 8), (3, 4)):
+        q0 = jaxquat.random(key_q, batch, jnp.float64)
+        omega = jax.random.normal(key_w, batch + (3,), jnp.float64)
+        def run(**kw):
+            return jaxquat.simulate_ensemble(q0, omega, 0.01, 60, save_every=20, chunk_size=40,
+                                             statistics=True, **kw)
+        sharded, single = run(), run(devices=jax.devices()[:1])
+        fields = ("final", "saved", "total_angle", "final_omega", "angle_from_start")
+        out[str(batch)] = dict(
+            difference=max(float(np.max(np.abs(np.asarray(getattr(sharded, f))
+                                               - np.asarray(getattr(single, f))))) for f in fields),
+            per_device=[max(s.data.nbytes for s in getattr(sharded, f).addressable_shards)
+                        / getattr(sharded, f).nbytes for f in fields],
+            specs=[str(getattr(sharded, f).sharding.spec) for f in fields],
+        )
     import json; print(json.dumps(out))
     """
 )
@@ -735,6 +752,12 @@ def test_bodies_are_sharded_over_four_devices_and_match_one_device():
     for n in ("1000", "1001"):
         assert out[n]["final"] <= 1e-12 and out[n]["saved"] <= 1e-12 and out[n]["total"] <= 1e-12
     assert out["1001"]["shape"] == [1001, 4]
+    # Multi-axis batches were replicated (4x the memory) unless the first axis was a multiple of 4.
+    for batch in ("(2, 4)", "(2, 6)", "(1, 8)", "(3, 4)"):
+        assert out[batch]["difference"] == 0.0, (batch, out[batch])
+        expected = 1.0 if batch == "(3, 4)" else 0.25  # (3, 4): 3-body blocks straddle the rows
+        assert out[batch]["per_device"] == [expected] * 5, (batch, out[batch])
+    assert out["(2, 4)"]["specs"][0] == "P('bodies', 'bodies_1')", out["(2, 4)"]
 
 
 _COMMITTED = textwrap.dedent(
