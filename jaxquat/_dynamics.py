@@ -618,7 +618,7 @@ def simulate_rigid_body(
     frame = check_frame(frame)
     method = check_choice(method, _METHODS, "method")
     check_choice(save, ("all", "final"), "save")
-    _check_steps(num_steps, save, save_every)
+    num_steps, save_every = _check_steps(num_steps, save, save_every)
     q0 = check_trailing(q0, 4, "q0")
     omega0 = check_trailing(omega0, 3, "omega0")
     inertia = _check_inertia(inertia)
@@ -854,7 +854,7 @@ def simulate_deformable_body(
     """
     method = check_choice(method, _METHODS, "method")
     check_choice(save, ("all", "final"), "save")
-    _check_steps(num_steps, save, save_every)
+    num_steps, save_every = _check_steps(num_steps, save, save_every)
     check_callable(positions, "positions", "positions(t)", 1)
     masses = as_float_array(masses, "masses")
     q0 = check_trailing(q0, 4, "q0")

@@ -19,6 +19,7 @@ import contextlib
 import errno
 import json
 import math
+import operator
 import os
 import sys
 import time
@@ -955,8 +956,14 @@ _MAX_STEPS = 2**31 - 1
 
 
 def _check_positive_int(value, name: str, *, allow_zero: bool = False) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise ValueError(f"`{name}` must be an integer; got {value!r}.")
+    """An integer of any kind (Python, NumPy, a concrete JAX scalar, as `integrate` takes), not a
+    bool, a float or a traced value."""
+    try:
+        if isinstance(value, bool):
+            raise TypeError
+        value = operator.index(value)
+    except TypeError:
+        raise ValueError(f"`{name}` must be an integer; got {value!r}.") from None
     low = 0 if allow_zero else 1
     if value < low:
         raise ValueError(f"`{name}` must be {'>= 0' if allow_zero else '>= 1'}; got {value}.")

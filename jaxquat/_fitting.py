@@ -23,6 +23,7 @@ $\theta = \pi$ flips the vector but changes neither the loss nor its gradient $J
 from __future__ import annotations
 
 import functools
+import operator
 from typing import Any
 
 import equinox as eqx
@@ -228,9 +229,16 @@ def _check_normalisable(qs: np.ndarray, name: str) -> None:
 
 
 def _check_count(value, name: str, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+    """An integer ≥ `minimum` of any kind (Python, NumPy, a concrete JAX scalar), not a bool."""
+    try:
+        if isinstance(value, bool):
+            raise TypeError
+        count = operator.index(value)
+    except TypeError:
+        count = None
+    if count is None or count < minimum:
         raise ValueError(f"`{name}` must be an int >= {minimum}; got {value!r}.")
-    return int(value)
+    return count
 
 
 def _relative_times(times: Array, dtype) -> Array:

@@ -33,6 +33,43 @@ def test_simulate_rigid_body_array_dt_names_dt(batch):
         jq.simulate_rigid_body(q0, omega0, MOMENTS, 0.1, 2, t0=jnp.zeros(2))
 
 
+def test_step_counts_of_any_integer_kind():
+    """`integrate` took a NumPy or concrete JAX integer as `num_steps`; `simulate_rigid_body` and
+    `simulate_deformable_body` checked it but kept the value as given, which their compiled run then
+    traced (a raw TracerBoolConversionError for `np.int64(5)`), and `simulate_ensemble` (and the
+    fit's `substeps`) refused a JAX integer. The same results as a Python int; bools, floats and
+    traced counts are still ValueErrors naming the argument."""
+    q0, omega, moments = jq.identity(), jnp.array([0.3, -0.2, 0.9]), jnp.array([1.0, 2.0, 3.0])
+    masses = jnp.array([1.0, 2.0, 1.5])
+
+    def shape(t):
+        base = jnp.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+        return base * (1.0 + 0.1 * jnp.sin(t))
+
+    runs = {
+        "rigid": lambda n: jq.simulate_rigid_body(q0, omega, moments, 0.1, n, save_every=n)[0],
+        "deformable": lambda n: jq.simulate_deformable_body(
+            masses, shape, q0, 0.1, n, save_every=n
+        )[0],
+        "ensemble": lambda n: jq.simulate_ensemble(q0, omega, 0.1, n, save_every=n).saved,
+        "integrate": lambda n: jq.integrate(q0, omega, 0.1, n, save_every=n),
+    }
+    for name, run in runs.items():
+        expected = np.asarray(run(5))
+        assert expected.shape[0] == 2, name
+        for count in (np.int64(5), np.int32(5), jnp.int32(5), jnp.asarray(5)):
+            np.testing.assert_array_equal(run(count), expected, err_msg=f"{name} {count!r}")
+        for bad in (True, 5.0, jnp.asarray(True), jnp.ones(2, int)):
+            with pytest.raises(ValueError, match="num_steps"):
+                run(bad)
+    times = jnp.linspace(0.0, 1.0, 6)
+    observed = jq.integrate(q0, omega, 0.2, 5)
+    fit = jq.fit_angular_velocity(times, observed, substeps=jnp.int32(2))
+    np.testing.assert_allclose(fit.omega, omega, atol=1e-9)
+    with pytest.raises(ValueError, match="substeps"):
+        jq.fit_angular_velocity(times, observed, substeps=True)
+
+
 def test_simulate_deformable_body_array_dt_names_dt():
     def positions(t):
         return jnp.eye(3) * (1.0 + 0.1 * t)
