@@ -972,9 +972,11 @@ def _check_positive_int(value, name: str, *, allow_zero: bool = False) -> int:
 
 def _check_real_scalar(value, name: str) -> None:
     """A finite real scalar (Python, NumPy or JAX number; not a bool or a string). A traced one
-    (under jax.jit or a derivative) is checked for its shape and dtype only."""
+    (under jax.jit or a derivative) is checked for its shape and dtype only (a float or an integer,
+    as a concrete one may be)."""
     if is_tracer(value):
-        if value.ndim != 0 or not jnp.issubdtype(value.dtype, jnp.floating):
+        real = jnp.issubdtype(value.dtype, jnp.floating) or jnp.issubdtype(value.dtype, jnp.integer)
+        if value.ndim != 0 or not real:
             raise ValueError(
                 f"`{name}` must be a real scalar; got a traced {value.dtype} of shape {value.shape}."
             )
@@ -1401,6 +1403,9 @@ def simulate_ensemble(
     dt_array = as_float_array(dt, "dt")
     if dt_array.ndim != 0:
         raise ValueError(f"`dt` must be a scalar; got shape {tuple(dt_array.shape)}.")
+    _check_real_scalar(
+        dt, "dt"
+    )  # (not a bool: `dt=True` ran with dt = 1, where `t0=True` was refused)
     _check_real_scalar(t0, "t0")
     if not is_tracer(dt_array) and not np.isfinite(np.asarray(dt_array)):
         raise ValueError(f"`dt` must be finite; got {float(dt_array)!r}.")

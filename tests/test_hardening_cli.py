@@ -12,6 +12,7 @@ import subprocess
 import sys
 import types
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
@@ -379,6 +380,21 @@ def test_simulate_ensemble_rejects_bad_t0(t0):
 def test_simulate_ensemble_rejects_non_finite_dt():
     with pytest.raises(ValueError, match="`dt` must be finite"):
         simulate_ensemble(np.array([[1.0, 0, 0, 0]]), np.ones((1, 3)), float("inf"), 2)
+
+
+def test_simulate_ensemble_takes_dt_and_t0_alike():
+    """`dt=True` ran with dt = 1 where `t0=True` was refused; an integer t0 was accepted eagerly and
+    refused traced (under jax.jit). Bools are refused for both; integers taken for both, traced too."""
+    q0, omega = np.array([[1.0, 0, 0, 0]]), np.ones((1, 3))
+    for name, dt, t0 in (("dt", True, 0.0), ("dt", np.bool_(True), 0.0), ("t0", 0.1, True)):
+        with pytest.raises(ValueError, match=f"`{name}` must be a real scalar"):
+            simulate_ensemble(q0, lambda t, q: omega * t, dt, 2, t0=t0)
+
+    def final(t0):
+        return simulate_ensemble(q0, lambda t, q: omega * t, 0.1, 2, t0=t0).final
+
+    np.testing.assert_allclose(jax.jit(final)(3), final(3), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(final(3), final(3.0), rtol=0, atol=0)
 
 
 # --- 5. bench arguments --------------------------------------------------------------------------
