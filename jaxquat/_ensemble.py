@@ -483,6 +483,11 @@ class _StateWriter:
             if not os.path.isdir(self.path):
                 raise ValueError(f"`path` {self.path!r} exists and is not a directory.")
             entries = set(os.listdir(self.path))
+            if entries == {
+                "index.json.tmp"
+            }:  # a run killed (SIGKILL) while writing its first index
+                os.remove(os.path.join(self.path, "index.json.tmp"))
+                entries = set()
             if entries and "index.json" not in entries:
                 raise ValueError(
                     f"`path` {self.path!r} is a non-empty directory that is not a jaxquat ensemble; "

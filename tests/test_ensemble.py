@@ -609,6 +609,18 @@ def test_bad_paths(tmp_path):
     with pytest.raises(ValueError, match="not a jaxquat ensemble"):
         simulate_ensemble(*args, path=tmp_path / "other", save_every=1)
     assert (tmp_path / "other" / "notes.txt").read_text() == "keep me"
+    # A run killed while writing its first index leaves only index.json.tmp: a run can start there.
+    (tmp_path / "killed").mkdir()
+    (tmp_path / "killed" / "index.json.tmp").write_text('{"form')
+    simulate_ensemble(*args, path=tmp_path / "killed", save_every=1)
+    assert load_ensemble(tmp_path / "killed")["complete"]
+    assert sorted(p.name for p in (tmp_path / "killed").iterdir()) == [
+        "angle_from_start.npy",
+        "final.npy",
+        "final_omega.npy",
+        "index.json",
+        "states_000000.npy",
+    ]
     with pytest.raises(ValueError, match="index.json"):
         load_ensemble(tmp_path / "other")
     with pytest.raises(ValueError, match="does not exist"):
