@@ -306,8 +306,9 @@ def _unquote(field: str) -> str:
 def read_observations_csv(path: str):
     """Read `t,w,x,y,z` rows (header optional; blank lines and `#` comments skipped).
 
-    Returns `(origin, times (T,), quaternions (T, 4))`, the arrays float64 NumPy. `origin` is the
-    first time as the file writes it (None when that is 0), and `times` count from it: each is the
+    Returns `(origin, times (T,), quaternions (T, 4), first)`, the arrays float64 NumPy. `first` is
+    the first time as the file writes it, and `origin` the same (None when that is 0); `times` count
+    from `origin`: each is the
     double nearest the exact (decimal) difference, so times far from zero keep their digits (at a
     Unix time in seconds float64's own spacing is 2.4e-7 s; at 1e15 it is 0.125 s). Raises
     `CommandLineError` naming the file and line of the first problem.
@@ -388,9 +389,9 @@ def read_observations_csv(path: str):
     if origin is not None or not _times_hold(data[:, 0].tolist()):
         offsets = _offsets(path, time_fields, decimal.Decimal(origin or 0), line_numbers)
         if offsets is None:  # (a span beyond float64: the fit refuses it, naming the span)
-            return None, data[:, 0], data[:, 1:]
+            return None, data[:, 0], data[:, 1:], time_fields[0]
         data[:, 0] = offsets
-    return origin, data[:, 0], data[:, 1:]
+    return origin, data[:, 0], data[:, 1:], time_fields[0]
 
 
 def _rounded_alike(later: str, earlier: str) -> bool:
@@ -1017,12 +1018,10 @@ def _from_origin(origin: str | None, offset: float) -> float:
     return float(_wide_context(decimal.MAX_PREC).add(_decimal(origin), decimal.Decimal(offset)))
 
 
-def _first_time(origin: str | None, t0: float) -> str:
-    """t0 as the file wrote it (1e15 + 0.3 is 1000000000000000.25 as a double), unless long; a
-    first time of zero (no origin kept) as 0, as a file writes it, not the double's repr 0.0."""
-    if origin is None and t0 == 0:
-        return "0"
-    return origin if origin is not None and len(origin) <= 40 else repr(t0)
+def _first_time(first: str, t0: float) -> str:
+    """t0 as the file wrote it (1e15 + 0.3 is 1000000000000000.25 as a double; a first time of 0
+    stays `0` or `0.0`, not the double's repr), unless long."""
+    return first if len(first) <= 40 else repr(t0)
 
 
 def _knot_labels(knots: list[float], offsets: list[float]) -> list[str]:
@@ -1050,7 +1049,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
                 f"argument --knots: must be at least {minimum} for --model {args.model}; "
                 f"got {args.knots}"
             )
-    origin, times, quaternions = read_observations_csv(args.file)
+    origin, times, quaternions, first = read_observations_csv(args.file)
     check_fit_memory(times.shape[0], _memory_available(), args.file, args.model)
     _setup_jax("float64")
     import numpy as np
@@ -1115,7 +1114,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         for t, (x, y, z) in zip(labels, report["omega_at_knots"], strict=True):
             print(f"  t = {t:<{width}} omega = [{x:.6g}, {y:.6g}, {z:.6g}] rad/s")
     print(
-        f"q0 = [{', '.join(f'{v:.9g}' for v in report['q0'])}] at t0 = {_first_time(origin, report['t0'])} "
+        f"q0 = [{', '.join(f'{v:.9g}' for v in report['q0'])}] at t0 = {_first_time(first, report['t0'])} "
         f"(the first observation)  residual rms "
         f"{report['residual_rms_deg']:.4g}°, max {report['residual_max_deg']:.4g}°, "
         f"{report['observations']} observations, converged: {report['converged']}"

@@ -68,8 +68,14 @@ def test_fit_recovers_omega_from_a_generated_csv(tmp_path, capsys):
     assert status == 0, err
     printed = out.split("[", 1)[1].split("]", 1)[0]
     np.testing.assert_allclose([float(v) for v in printed.split(",")], OMEGA, atol=1e-8)
-    # The first time is 0: printed as such (it read `t0 = 0.0`, where a time of 5 reads `t0 = 5`).
-    assert times[0] == 0 and "at t0 = 0 (the first observation)" in out, out
+    # The first time is printed as the file writes it: "0.0" here (`repr`), "0" below (it read
+    # `t0 = 0.0` for a file writing 0, where a file writing 5 read `t0 = 5`).
+    assert times[0] == 0 and "at t0 = 0.0 (the first observation)" in out, out
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join(["0" + lines[0][len("0.0") :], *lines[1:]]) + "\n")
+    status, out, err = _run(["fit", path], capsys)
+    assert status == 0, err
+    assert "at t0 = 0 (the first observation)" in out, out
 
 
 def test_fit_reads_a_csv_with_a_byte_order_mark_and_crlf_line_ends(tmp_path, capsys):
