@@ -561,8 +561,22 @@ def _curve_residuals(params, args, frame, kind, substeps):
     return _orientation_residuals(model_qs, observed, frame)
 
 
-def _check_knots(knots, times: Array, model: str, num_obs: int) -> Array:
+def _used_times(times: Array, weights: Array) -> np.ndarray | None:
+    """The times of the observations of positive weight when the weights are concrete and some are
+    0 (a weight of 0 removes an observation: only the rest determine the knots), else `None`."""
+    if is_tracer(weights) or is_tracer(times):
+        return None
+    used = np.asarray(weights) > 0
+    return None if used.all() else np.asarray(times)[used]
+
+
+def _check_knots(knots, times: Array, model: str, num_obs: int, used=None) -> Array:
+    """The knot times: evenly spaced over `times` for an int, or as given; checked to be determined
+    by the observations (by `used`, the times of positive weight, when some weights are 0)."""
     minimum = 4 if model == "spline" else 2
+    weighted = used is not None
+    if weighted:
+        num_obs = used.shape[0]
     if knots is None:
         knots = max(minimum, min(20, num_obs // 4))
     if isinstance(knots, (bool, np.bool_)):
@@ -572,11 +586,12 @@ def _check_knots(knots, times: Array, model: str, num_obs: int) -> Array:
             raise ValueError(
                 f"`knots` must be at least {minimum} for model={model!r}; got {knots}."
             )
-        _check_determined(int(knots), model, num_obs)
+        _check_determined(int(knots), model, num_obs, weighted)
         evenly = jnp.linspace(times[0], times[-1], int(knots), dtype=times.dtype)
         if not is_tracer(times):  # (evenly spaced knots over a gap in the observations)
+            determining = np.asarray(times if used is None else used, np.float64)
             _check_identifiable(
-                np.asarray(evenly, np.float64), np.asarray(times, np.float64), model, given=False
+                np.asarray(evenly, np.float64), determining, model, given=False, weighted=weighted
             )
         return evenly
     knots = as_float_array(knots, "knots")
@@ -590,13 +605,14 @@ def _check_knots(knots, times: Array, model: str, num_obs: int) -> Array:
             raise ValueError(f"`knots` must be finite; got {np.asarray(knots)}.")
         if not np.all(np.diff(np.asarray(knots)) > 0):
             raise ValueError(f"`knots` must be strictly increasing; got {np.asarray(knots)}.")
-    _check_determined(knots.shape[0], model, num_obs)
+    _check_determined(knots.shape[0], model, num_obs, weighted)
     if not is_tracer(knots) and not is_tracer(times):
-        _check_identifiable(np.asarray(knots, np.float64), np.asarray(times, np.float64), model)
+        determining = np.asarray(times if used is None else used, np.float64)
+        _check_identifiable(np.asarray(knots, np.float64), determining, model, weighted=weighted)
     return knots
 
 
-def _check_determined(num_knots: int, model: str, num_obs: int) -> None:
+def _check_determined(num_knots: int, model: str, num_obs: int, weighted: bool = False) -> None:
     """K knots are 3K unknowns (plus 3 for q0); T observations give 3T equations: need K <= T - 1.
 
     Equivalently, the T - 1 relative rotations between neighbouring observations (3 degrees of
@@ -609,15 +625,16 @@ def _check_determined(num_knots: int, model: str, num_obs: int) -> None:
             hint = f"model={model!r} needs at least {minimum} knots, so at least {minimum + 1} observations"
         else:
             hint = f"use knots <= {num_obs - 1} or more observations"
+        which = " of positive `weights`" if weighted else ""
         raise ValueError(
-            f"`knots`: {num_knots} knots are too many for {num_obs} observations with "
+            f"`knots`: {num_knots} knots are too many for {num_obs} observations{which} with "
             f"model={model!r}: the {num_obs - 1} rotations between neighbouring observations "
             f"determine at most {num_obs - 1} knots (3 unknowns each); {hint}."
         )
 
 
 def _check_identifiable(
-    knots: np.ndarray, times: np.ndarray, model: str, given: bool = True
+    knots: np.ndarray, times: np.ndarray, model: str, given: bool = True, weighted: bool = False
 ) -> None:
     """The T − 1 observation intervals must determine every knot value (`given`: the knot times
     were passed; else they are the evenly spaced ones of an int `knots`, which a gap in the
@@ -663,8 +680,11 @@ def _check_identifiable(
             )
         if outside:
             where.append(f"{outside} knots lie outside the observed times")
+        which = (
+            "times of the observations of positive `weights`" if weighted else "observation times"
+        )
         raise ValueError(
-            f"`knots`: the observation times do not determine the {num_knots} knot values of "
+            f"`knots`: the {which} do not determine the {num_knots} knot values of "
             f"model={model!r} (rank {rank} of {num_knots}"
             + (f"; {' and '.join(where)}" if where else "")
             + (
@@ -748,6 +768,9 @@ def fit_angular_velocity(
     - `weights`: optional non-negative per-observation weights `(T,)` (e.g. 1/σₖ²), at least two
       of them positive. A weight of 0 removes an observation (an outlier, say) from the fit and from
       the starting point; a small positive weight keeps it in the starting point's log-differences.
+      For the time-varying models T above means the observations of positive weight: they alone
+      determine the knots (counted, placed by default and checked against them when the weights are
+      concrete; traced weights leaving fewer than K + 1 give `converged=False`).
     - `omega0`: optional starting guess: `(3,)`, or knot values `(K, 3)` for the time-varying models.
     - `substeps`: Magnus-4 steps per observation interval (time-varying models).
     - `solver`: an `optimistix` least-squares solver; default
@@ -805,7 +828,7 @@ def fit_angular_velocity(
         knots = None
         value_shapes = [(3,)]
     else:
-        knots = _check_knots(knots, times, model, num_obs)
+        knots = _check_knots(knots, times, model, num_obs, _used_times(times, weights))
         value_shapes = [(3,), (knots.shape[0], 3)]
     if omega0 is None:
         omega0 = _start(times, observed, weights, knots, model=model, frame=frame)
@@ -958,8 +981,10 @@ def _fit(
         )
         q0, omega, fitted = _curve_model(params, times, reference, knots, frame, model, substeps)
     residual_angles, loss = _statistics(fitted, observed, weights, frame)
-    # Traced weights escape the ValueError for fewer than two positive ones: nothing was fitted then.
-    converged = converged & (jnp.sum(weights > 0) >= 2)
+    # Traced weights escape the ValueErrors for too few positive ones (two; for K knots, K + 1, as
+    # K ≤ T − 1 needs): nothing was determined then, whatever the solver says.
+    needed = 2 if knots is None else knots.shape[0] + 1
+    converged = converged & (jnp.sum(weights > 0) >= needed)
     return AngularVelocityFit(
         omega=omega,
         q0=q0,
@@ -1146,7 +1171,9 @@ def fit_rigid_body(
 
     **Arguments:**
 
-    - `times` `(T,)`, `qs` `(T, 4)`, `weights` `(T,)`: as in `fit_angular_velocity`.
+    - `times` `(T,)`, `qs` `(T, 4)`, `weights` `(T,)`: as in `fit_angular_velocity`, with at least
+      three observations of positive weight (8 unknowns, 3 equations each; traced weights leaving
+      fewer give `converged=False`).
     - `inertia0`: optional starting principal moments `(3,)` (any scale). `omega0`: optional starting
       body-frame ω at `times[0]`, `(3,)`.
     - `method`, `substeps`: the integrator (see `simulate_rigid_body`) and its steps per interval.
@@ -1164,6 +1191,12 @@ def fit_rigid_body(
     asymmetric body tumbling for at least a fraction of its nutation period does.
     """
     times, observed, weights = _check_observations(times, qs, weights)
+    if not is_tracer(weights) and np.count_nonzero(np.asarray(weights)) < 3:
+        raise ValueError(
+            "`weights` must give at least three observations a positive weight for a rigid body "
+            "(8 unknowns: q0, two inertia ratios and ω0; 3 equations per observation); got "
+            f"{np.count_nonzero(np.asarray(weights))}."
+        )
     dtype = observed.dtype
     starts = []
     for name, value in (("inertia0", inertia0), ("omega0", omega0)):
@@ -1268,7 +1301,9 @@ def _fit_rigid_body(
     params, num_steps, converged = _solve(
         residual_fn, params0, args, weights, solver, max_steps, polish
     )
-    converged = converged & (jnp.sum(weights > 0) >= 2)  # as in fit_angular_velocity
+    # 8 unknowns (q0, two log ratios, ω0), 3 equations per observation: at least 3 observations of
+    # positive weight (concrete weights are checked in `fit_rigid_body`).
+    converged = converged & (jnp.sum(weights > 0) >= 3)
     q0, inertia, fitted = _rigid_body_model(params, times, reference, method, substeps)
     residual_angles, loss = _statistics(fitted, observed, weights, "body")
     return RigidBodyFit(

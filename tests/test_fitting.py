@@ -289,6 +289,54 @@ def test_traced_weights_leaving_fewer_than_two_observations_do_not_converge(cons
     assert float(np.max(np.abs(derivative[2]))) < 1e-12
 
 
+def test_weights_must_leave_enough_observations_for_the_model():
+    """Observations of weight 0 determine nothing, but the knots were counted and checked against
+    all observations: 2 positive weights of 20 gave a piecewise-linear ω(t) of 5 knots (18 unknowns
+    from 6 equations), one of infinitely many minima, with converged=True (true ω constant; fitted
+    knot values −0.33 … 0.55 × it). The same for a rigid body (8 unknowns) with 2 positive
+    weights: three starts, three different inertias, all converged. Now the knots are counted,
+    placed by default and checked against the observations of positive weight, a rigid body needs
+    three, and traced weights that leave too few say converged=False."""
+    omega = jnp.array([0.3, -0.5, 0.8])
+    times = np.linspace(0.0, 4.0, 20)
+    qs = jaxquat.step(jaxquat.identity(), omega, times)
+
+    def weights(*used):
+        w = np.zeros(20)
+        w[list(used)] = 1.0
+        return w
+
+    with pytest.raises(ValueError, match="2 knots are too many for 2 observations of positive"):
+        jaxquat.fit_angular_velocity(times, qs, weights=weights(0, 19), model="piecewise_linear")
+    with pytest.raises(ValueError, match="4 knots are too many for 3 observations of positive"):
+        jaxquat.fit_angular_velocity(times, qs, weights=weights(0, 9, 19), model="spline")
+    with pytest.raises(ValueError, match="times of the observations of positive `weights` do not"):
+        jaxquat.fit_angular_velocity(
+            times, qs, weights=weights(*range(8)), model="piecewise_linear", knots=3
+        )
+    # Four positive weights: two knots by default, and the exact ω (the closed form's).
+    fit = jaxquat.fit_angular_velocity(
+        times, qs, weights=weights(0, 6, 13, 19), model="piecewise_linear"
+    )
+    assert fit.converged and fit.omega.knots.shape == (2,)
+    np.testing.assert_allclose(fit.omega.values, np.tile(omega, (2, 1)), atol=1e-9)
+    # Traced weights: 5 default knots need 6 observations of positive weight.
+    lanes = np.stack([weights(*range(0, 20, 4)), weights(*range(0, 20, 3)), np.ones(20)])
+    fits = jax.vmap(
+        lambda w: jaxquat.fit_angular_velocity(times, qs, weights=w, model="piecewise_linear")
+    )(jnp.asarray(lanes))
+    assert fits.converged.tolist() == [False, True, True]
+    np.testing.assert_allclose(fits.omega.values[1:], np.tile(omega, (2, 5, 1)), atol=1e-8)
+    # A rigid body: 8 unknowns, 3 equations per observation.
+    body_qs, _ = jaxquat.simulate_rigid_body(
+        jaxquat.identity(), jnp.array([0.5, 0.8, 0.6]), jnp.array([1.0, 1.6, 2.3]), 4.0 / 19, 19
+    )
+    with pytest.raises(ValueError, match="`weights` must give at least three observations"):
+        jaxquat.fit_rigid_body(times, body_qs, weights=weights(0, 3))
+    traced = jax.jit(lambda w: jaxquat.fit_rigid_body(times, body_qs, weights=w).converged)
+    assert not bool(traced(weights(0, 3)))
+
+
 @pytest.fixture(scope="module")
 def weighted_case():
     """40 noisy observations (SciPy) with two outliers given weight 0, and the fit's weights."""
