@@ -483,9 +483,8 @@ class _StateWriter:
             if not os.path.isdir(self.path):
                 raise ValueError(f"`path` {self.path!r} exists and is not a directory.")
             entries = set(os.listdir(self.path))
-            if entries == {
-                "index.json.tmp"
-            }:  # a run killed (SIGKILL) while writing its first index
+            # Only the temporary of a first index: a run killed (SIGKILL) while writing it.
+            if entries == {"index.json.tmp"}:
                 os.remove(os.path.join(self.path, "index.json.tmp"))
                 entries = set()
             if entries and "index.json" not in entries:
@@ -1408,9 +1407,8 @@ def simulate_ensemble(
     dt_array = as_float_array(dt, "dt")
     if dt_array.ndim != 0:
         raise ValueError(f"`dt` must be a scalar; got shape {tuple(dt_array.shape)}.")
-    _check_real_scalar(
-        dt, "dt"
-    )  # (not a bool: `dt=True` ran with dt = 1, where `t0=True` was refused)
+    # (Not a bool: `dt=True` ran with dt = 1, where `t0=True` was refused.)
+    _check_real_scalar(dt, "dt")
     _check_real_scalar(t0, "t0")
     if not is_tracer(dt_array) and not np.isfinite(np.asarray(dt_array)):
         raise ValueError(f"`dt` must be finite; got {float(dt_array)!r}.")
