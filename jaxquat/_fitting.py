@@ -1210,11 +1210,14 @@ def fit_rigid_body(
     inertia0, omega0 = starts
     if inertia0 is not None and not is_tracer(inertia0) and np.any(np.asarray(inertia0) <= 0):
         raise ValueError(f"`inertia0` must be positive; got {np.asarray(inertia0)}.")
+    # Options before the starting point is computed (a typo cost its compilation first).
+    method = check_choice(method, ("cf4", "midpoint", "euler", "rk4", "naive"), "method")
+    substeps = _check_count(substeps, "substeps", 1)
+    options = _solver_options(solver, dtype, max_steps, polish)
     if inertia0 is None or omega0 is None:
         inertia_start, omega_start = _rigid_body_start(times, observed, weights)
         inertia0 = inertia_start if inertia0 is None else inertia0
         omega0 = omega_start if omega0 is None else omega0
-    method = check_choice(method, ("cf4", "midpoint", "euler", "rk4", "naive"), "method")
     return _fit_rigid_body(
         times,
         observed,
@@ -1222,8 +1225,8 @@ def fit_rigid_body(
         inertia0,
         omega0,
         method=method,
-        substeps=_check_count(substeps, "substeps", 1),
-        **_solver_options(solver, dtype, max_steps, polish),
+        substeps=substeps,
+        **options,
     )
 
 

@@ -289,6 +289,23 @@ def test_traced_weights_leaving_fewer_than_two_observations_do_not_converge(cons
     assert float(np.max(np.abs(derivative[2]))) < 1e-12
 
 
+@pytest.mark.parametrize(
+    "option", [dict(method="cf5"), dict(substeps=0), dict(max_steps=0), dict(solver="lm")]
+)
+def test_rigid_body_options_are_checked_before_the_start_is_computed(monkeypatch, option):
+    """`method` (and the other options) were checked only after the automatic starting point had
+    been computed and compiled: a typo cost that compilation before its ValueError."""
+
+    def start(*args):
+        raise AssertionError("the starting point was computed before the options were checked")
+
+    monkeypatch.setattr(jaxquat._fitting, "_rigid_body_start", start)
+    times = np.linspace(0.0, 1.0, 6)
+    qs = np.tile([1.0, 0.0, 0.0, 0.0], (6, 1))
+    with pytest.raises(ValueError, match=next(iter(option))):
+        jaxquat.fit_rigid_body(times, qs, **option)
+
+
 def test_weights_must_leave_enough_observations_for_the_model():
     """Observations of weight 0 determine nothing, but the knots were counted and checked against
     all observations: 2 positive weights of 20 gave a piecewise-linear ω(t) of 5 knots (18 unknowns
