@@ -19,7 +19,6 @@ import contextlib
 import errno
 import json
 import math
-import operator
 import os
 import sys
 import time
@@ -63,6 +62,7 @@ from ._numerics import (
     check_choice,
     check_frame,
     check_trailing,
+    integer_value,
     is_tracer,
     reusable_callable,
     safe_norm,
@@ -962,12 +962,10 @@ _MAX_STEPS = 2**31 - 1
 def _check_positive_int(value, name: str, *, allow_zero: bool = False) -> int:
     """An integer of any kind (Python, NumPy, a concrete JAX scalar, as `integrate` takes), not a
     bool, a float or a traced value."""
-    try:
-        if isinstance(value, bool):
-            raise TypeError
-        value = operator.index(value)
-    except TypeError:
-        raise ValueError(f"`{name}` must be an integer; got {value!r}.") from None
+    count = integer_value(value)
+    if count is None:
+        raise ValueError(f"`{name}` must be an integer; got {value!r}.")
+    value = count
     low = 0 if allow_zero else 1
     if value < low:
         raise ValueError(f"`{name}` must be {'>= 0' if allow_zero else '>= 1'}; got {value}.")

@@ -23,7 +23,6 @@ $\theta = \pi$ flips the vector but changes neither the loss nor its gradient $J
 from __future__ import annotations
 
 import functools
-import operator
 from typing import Any
 
 import equinox as eqx
@@ -46,6 +45,7 @@ from ._numerics import (
     check_frame,
     check_trailing,
     cross,
+    integer_value,
     is_tracer,
     safe_norm,
 )
@@ -124,8 +124,14 @@ def _polish_solver(dtype) -> optx.AbstractLeastSquaresSolver:
     return optx.GaussNewton(rtol=tol, atol=tol)
 
 
-def _check_observations(times: ArrayLike, qs: ArrayLike, weights: ArrayLike | None):
-    """Validate `(times, qs, weights)`; return (times, unit qs, weights)."""
+_TWO_POSITIVE = (2, "two", "(a rotation needs two orientations to be seen)")
+
+
+def _check_observations(
+    times: ArrayLike, qs: ArrayLike, weights: ArrayLike | None, positive=_TWO_POSITIVE
+):
+    """Validate `(times, qs, weights)`; return (times, unit qs, weights). `positive`: how many
+    observations concrete weights must leave (the count, in words, and why)."""
     qs = check_trailing(qs, 4, "qs")
     if qs.ndim != 2:
         raise ValueError(
@@ -194,10 +200,11 @@ def _check_observations(times: ArrayLike, qs: ArrayLike, weights: ArrayLike | No
             raise ValueError(f"`weights` must be finite; got {np.asarray(weights)}.")
         if not is_tracer(weights) and np.any(np.asarray(weights) < 0):
             raise ValueError(f"`weights` must be non-negative; got minimum {np.min(weights)}.")
-        if not is_tracer(weights) and np.count_nonzero(np.asarray(weights)) < 2:
+        needed, word, why = positive
+        if not is_tracer(weights) and np.count_nonzero(np.asarray(weights)) < needed:
             raise ValueError(
-                "`weights` must give at least two observations a positive weight (a rotation "
-                f"needs two orientations to be seen); got {np.count_nonzero(np.asarray(weights))}."
+                f"`weights` must give at least {word} observations a positive weight {why}; "
+                f"got {np.count_nonzero(np.asarray(weights))}."
             )
         weights = weights.astype(dtype)
     if not is_tracer(qs):
@@ -230,12 +237,7 @@ def _check_normalisable(qs: np.ndarray, name: str) -> None:
 
 def _check_count(value, name: str, minimum: int) -> int:
     """An integer ≥ `minimum` of any kind (Python, NumPy, a concrete JAX scalar), not a bool."""
-    try:
-        if isinstance(value, bool):
-            raise TypeError
-        count = operator.index(value)
-    except TypeError:
-        count = None
+    count = integer_value(value)
     if count is None or count < minimum:
         raise ValueError(f"`{name}` must be an int >= {minimum}; got {value!r}.")
     return count
@@ -577,6 +579,9 @@ def _check_knots(knots, times: Array, model: str, num_obs: int, used=None) -> Ar
     weighted = used is not None
     if weighted:
         num_obs = used.shape[0]
+    determining = (
+        None if is_tracer(times) else np.asarray(times if used is None else used, np.float64)
+    )
     if knots is None:
         knots = max(minimum, min(20, num_obs // 4))
     if isinstance(knots, (bool, np.bool_)):
@@ -588,8 +593,7 @@ def _check_knots(knots, times: Array, model: str, num_obs: int, used=None) -> Ar
             )
         _check_determined(int(knots), model, num_obs, weighted)
         evenly = jnp.linspace(times[0], times[-1], int(knots), dtype=times.dtype)
-        if not is_tracer(times):  # (evenly spaced knots over a gap in the observations)
-            determining = np.asarray(times if used is None else used, np.float64)
+        if determining is not None:  # (evenly spaced knots over a gap in the observations)
             _check_identifiable(
                 np.asarray(evenly, np.float64), determining, model, given=False, weighted=weighted
             )
@@ -606,8 +610,7 @@ def _check_knots(knots, times: Array, model: str, num_obs: int, used=None) -> Ar
         if not np.all(np.diff(np.asarray(knots)) > 0):
             raise ValueError(f"`knots` must be strictly increasing; got {np.asarray(knots)}.")
     _check_determined(knots.shape[0], model, num_obs, weighted)
-    if not is_tracer(knots) and not is_tracer(times):
-        determining = np.asarray(times if used is None else used, np.float64)
+    if not is_tracer(knots) and determining is not None:
         _check_identifiable(np.asarray(knots, np.float64), determining, model, weighted=weighted)
     return knots
 
@@ -1131,6 +1134,13 @@ def _equation_error_inertia(rates: Array, midpoints: Array, valid: Array) -> tup
     return inertia / inertia[0], candidate / candidate[0]
 
 
+_RIGID_BODY_POSITIVE = (
+    3,
+    "three",
+    "for a rigid body (8 unknowns: q0, two inertia ratios and ω0; 3 equations per observation)",
+)
+
+
 def fit_rigid_body(
     times: ArrayLike,
     qs: ArrayLike,
@@ -1190,13 +1200,7 @@ def fit_rigid_body(
     Identifiability: a steady spin about a principal axis does not determine the ratios; an
     asymmetric body tumbling for at least a fraction of its nutation period does.
     """
-    times, observed, weights = _check_observations(times, qs, weights)
-    if not is_tracer(weights) and np.count_nonzero(np.asarray(weights)) < 3:
-        raise ValueError(
-            "`weights` must give at least three observations a positive weight for a rigid body "
-            "(8 unknowns: q0, two inertia ratios and ω0; 3 equations per observation); got "
-            f"{np.count_nonzero(np.asarray(weights))}."
-        )
+    times, observed, weights = _check_observations(times, qs, weights, _RIGID_BODY_POSITIVE)
     dtype = observed.dtype
     starts = []
     for name, value in (("inertia0", inertia0), ("omega0", omega0)):
@@ -1306,7 +1310,7 @@ def _fit_rigid_body(
     )
     # 8 unknowns (q0, two log ratios, ω0), 3 equations per observation: at least 3 observations of
     # positive weight (concrete weights are checked in `fit_rigid_body`).
-    converged = converged & (jnp.sum(weights > 0) >= 3)
+    converged = converged & (jnp.sum(weights > 0) >= _RIGID_BODY_POSITIVE[0])
     q0, inertia, fitted = _rigid_body_model(params, times, reference, method, substeps)
     residual_angles, loss = _statistics(fitted, observed, weights, "body")
     return RigidBodyFit(

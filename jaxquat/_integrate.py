@@ -25,7 +25,6 @@ from __future__ import annotations
 import fractions
 import functools
 import math
-import operator
 from collections.abc import Callable
 from typing import Any
 
@@ -49,6 +48,7 @@ from ._numerics import (
     compensated_add as _compensated_add,
     cos_half_minus_one,
     cross,
+    integer_value,
     is_tracer,
     reusable_callable,
     sinc_half,
@@ -447,12 +447,10 @@ def _check_count(value, name: str, minimum: int) -> int:
     """A static integer ≥ `minimum` (bool is rejected: `True` is not a count)."""
     if isinstance(value, (bool, np.bool_)):
         raise ValueError(f"`{name}` must be a Python int (static); got {value!r} (a bool).")
-    try:
-        value = operator.index(value)
-    except TypeError as e:
-        raise ValueError(
-            f"`{name}` must be a Python int (static); got {type(value).__name__}."
-        ) from e
+    count = integer_value(value)
+    if count is None:
+        raise ValueError(f"`{name}` must be a Python int (static); got {type(value).__name__}.")
+    value = count
     if value < minimum:
         raise ValueError(f"`{name}` must be >= {minimum}; got {value}.")
     return value

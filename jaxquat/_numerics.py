@@ -72,6 +72,17 @@ def as_float_array(x: ArrayLike, name: str = "x") -> Array:
     return x
 
 
+def integer_value(value) -> int | None:
+    """`value` as a Python int if it is an integer of any kind (Python, NumPy, a concrete JAX
+    scalar), else `None`: bools (`True` is not a count), floats, arrays and traced values."""
+    if isinstance(value, (bool, np.bool_)):
+        return None
+    try:
+        return operator.index(value)
+    except TypeError:  # (a tracer's TracerIntegerConversionError is one)
+        return None
+
+
 def check_shape(shape, name: str = "shape") -> tuple[int, ...]:
     """Validate a batch-shape argument: a non-negative int or a tuple/list of them → a tuple of ints.
 
@@ -80,10 +91,8 @@ def check_shape(shape, name: str = "shape") -> tuple[int, ...]:
     """
 
     def size(n) -> int:
-        if isinstance(n, (bool, np.bool_)):
-            raise TypeError
-        n = operator.index(n)
-        if n < 0:
+        n = integer_value(n)
+        if n is None or n < 0:
             raise TypeError
         return n
 
