@@ -626,9 +626,11 @@ class Sampled(eqx.Module):
     t0: Array
 
     def __call__(self, t, q=None) -> Array:
-        """ω at time `t`, shape `omegas.shape[1:]` (`q` is ignored)."""
+        """ω at time `t`, shape `t.shape + omegas.shape[1:]` (`q` is ignored)."""
         t = jnp.asarray(t)
         index = self._index(t - self.t0, jnp.abs(t) + jnp.abs(self.t0), False)
+        if index.ndim:  # times of any shape, as `AngularVelocityCurve` takes them
+            return jnp.take(self.omegas, index, axis=0)
         return lax.dynamic_index_in_dim(self.omegas, index, axis=0, keepdims=False)
 
     def _index(self, offset, scale, backward, eps: float | None = None) -> Array:
@@ -690,6 +692,13 @@ def sampled(omegas: ArrayLike, dt: ArrayLike, *, t0: ArrayLike = 0.0) -> Sampled
     boundary that then reads the sample after it (ten random samples run back to t0: 0.35 rad off
     with `LieEuler` or `NormalizedEuler`, 3e-16 with `Magnus4`) — and count time from the first
     sample (`t0=0`) in float32.
+
+    **Dense output with diffrax** (`SaveAt(ts=...)`, `sol.evaluate`). The steps of `LieEuler` and
+    `ExpMidpoint` on the sampling grid are exact, but their cubic Hermite dense output takes its end
+    slope from ω at the step's end, which reads the *next* sample: between the steps it is off by up
+    to ≈ 0.15·Δt·|ω_{k+1} − ω_k| (ten N(0, 1) samples, Δt = 0.1: 0.08 rad mid-step, 3e-16 at the
+    steps). `Magnus4/6/8` (and `NormalizedEuler` with `corrected_vector_field`, whose dense output is
+    the geodesic) are exact between the steps too (3e-16).
 
     **Reverse mode.** With `integrate`'s default `method="euler"` the gradient w.r.t. `omegas` costs
     O(T) on the sampling grid and off it (each step reads its sample by index, and its cotangent is

@@ -236,6 +236,61 @@ def test_sampled_omega_integrated_backwards_undoes_the_forward_run(frame, getkey
         assert_quat_close(traced, q0, atol=1e-13)
 
 
+def test_sampled_called_at_an_array_of_times():
+    """`Sampled(t)` takes times of any shape, as `AngularVelocityCurve` does (a TypeError from
+    `dynamic_slice` before); each entry is the scalar lookup."""
+    omegas = jnp.arange(12.0).reshape(4, 3)
+    source = jq.sampled(omegas, 0.1, t0=1.0)
+    times = jnp.array([[0.5, 1.0, 1.15], [1.2999999999, 1.3, 9.0]])
+    out = source(times)
+    assert out.shape == (2, 3, 3)
+    scalar = np.stack([source(t) for t in times.reshape(-1)]).reshape(2, 3, 3)
+    np.testing.assert_array_equal(out, scalar)
+    np.testing.assert_array_equal(out[:, :, 0], [[0.0, 0.0, 3.0], [6.0, 9.0, 9.0]])
+
+
+def test_sampled_dense_output_between_the_steps():
+    """On the sampling grid diffrax's Magnus4 is exact at and between the steps; LieEuler's steps are
+    exact, but its Hermite dense output reads the next sample for its end slope (documented in
+    `sampled`: up to ≈ 0.15·Δt·|Δω| between the steps)."""
+    import diffrax
+
+    rng = np.random.default_rng(3)
+    num, h = 10, 0.1
+    omegas = rng.normal(size=(num, 3))
+    q0 = jq.identity()
+    ts = np.linspace(0.0, num * h, 83)
+    expected = []
+    for t in ts:
+        k = min(int(np.floor(t / h + 1e-9)), num - 1)
+        rot = Rotation.from_rotvec(omegas[k] * (t - k * h))
+        for j in range(k - 1, -1, -1):
+            rot = rot * Rotation.from_rotvec(omegas[j] * h)
+        expected.append(rot.as_quat())
+    expected = np.stack(expected)
+    term = diffrax.ODETerm(jq.kinematic_vector_field(jq.sampled(jnp.asarray(omegas), h)))
+
+    def dense(solver, where):
+        sol = diffrax.diffeqsolve(
+            term,
+            solver,
+            0.0,
+            num * h,
+            h,
+            q0,
+            saveat=diffrax.SaveAt(ts=jnp.asarray(ts)),
+            max_steps=20,
+        )
+        return quat_distance(jq.to_xyzw(sol.ys)[where], expected[where])
+
+    everywhere = np.ones(ts.shape, bool)
+    on_steps = np.isclose(np.mod(ts / h + 0.5, 1.0), 0.5)
+    assert dense(jq.Magnus4(), everywhere) < 1e-13
+    assert dense(jq.LieEuler(), on_steps) < 1e-13
+    jump = np.max(np.linalg.norm(np.diff(omegas, axis=0), axis=-1))
+    assert dense(jq.LieEuler(), ~on_steps) < 0.15 * h * jump
+
+
 def test_sampled_float32_lookup_at_large_times():
     """float32 times near 10³ s resolve ~6e-5 s; looking samples up by absolute time put Magnus8's
     outer Gauss node (6.9% of a step before the boundary) in the next sample (4e-3 rad wrong) and
