@@ -200,6 +200,10 @@ def log(q: ArrayLike) -> Array:
     A negative real q = (w < 0, 0, 0, 0) has no axis of its own: its logarithm takes the x axis,
     (ln|w|, π, 0, 0), as numpy-quaternion does (the value jumps there: every (ln|w|, π·u) with |u| = 1
     is a limit; the Jacobian of the vector part is taken as 0). `log(0)` is −∞ in w.
+    Near that axis (w < 0, |v| ≪ |w|) the Jacobian of the vector part is about π/|v| across v and
+    accurate relative to that size only: its entry along v (−1/|w|) comes out with an error of about
+    ε·π/|v| (float32, q = (−1, 1e-6, 0, 0): −0.91 forward, −1.0 reverse; float64 at |v| = 1e-12:
+    −1.0004 and −1.0005). For rotations use `to_rotvec` (or `canonicalize` first), which take w ≥ 0.
     """
     q = check_trailing(q, 4, "q")
     q, e = prescale(q)  # ln|q| = ln|q 2⁻ᵉ| + e ln 2; the vector part is scale-invariant

@@ -242,7 +242,10 @@ def principal_axes(inertia: ArrayLike) -> tuple[Array, Array]:
     moments in ascending order gives the identity, and small changes keep q near it. q jumps where
     an axis's two largest components swap, and between q and −q where w crosses 0 (a rotation near a
     half-turn; the same rotation). For equal moments the axes are not unique and the gradient through
-    q is undefined (the eigenvector gradient divides by the gap).
+    q is undefined (the eigenvector gradient divides by the gap; NaN for exactly equal moments, finite
+    and meaningless where round-off has split them). The moments' gradient stays finite there, but
+    only symmetric functions of the equal ones (their sum, say) have a gradient: that of one of them
+    follows the basis `eigh` happened to pick.
     """
     inertia = check_matrix(inertia, "inertia")
     inertia = _check_inertia(inertia, "inertia", semidefinite=True)
