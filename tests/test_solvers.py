@@ -1134,3 +1134,27 @@ def _check_cf4_dense_derivative(dtype, theta, atol):
     fwd = jax.jacfwd(lambda w: dense(w, True))(omega)
     np.testing.assert_allclose(rev, exact, atol=atol)
     np.testing.assert_allclose(fwd, exact, atol=atol)
+
+
+def test_magnus_probe_has_no_blind_axis_and_works_in_half_precision():
+    """The probe turns q0 about two axes: body-frame rates along the first turn's axis (1, 2, 3)
+    at the first midpoint, given to the world-frame solver from the identity, were not flagged
+    with one turn; and in float16/bfloat16 a tolerance of 1024 ε ≥ 1 could never fail (helper-77)."""
+    axis = jnp.array([1.0, 2.0, 3.0])
+
+    def body(t, q, args):
+        w = axis * (1.0 + (t - 0.125)) + (t - 0.125) * jnp.array([1.0, 0.0, 0.0])
+        return 0.5 * jq.multiply(q, jq.from_vector(w.astype(q.dtype)))
+
+    identity = jnp.array([1.0, 0.0, 0.0, 0.0])
+    with pytest.raises(eqx.EquinoxRuntimeError, match="depends on q"):
+        diffrax.diffeqsolve(diffrax.ODETerm(body), jq.Magnus4(), 0.0, 2.0, 0.25, identity)
+    q0 = jq.normalize(jnp.array([0.9, 0.1, -0.3, 0.2]))
+    for dtype in [jnp.float16, jnp.bfloat16]:
+        y0, t1, dt0 = q0.astype(dtype), dtype(2.0), dtype(0.25)
+        with pytest.raises(eqx.EquinoxRuntimeError, match="depends on q"):
+            diffrax.diffeqsolve(diffrax.ODETerm(body), jq.Magnus4(), dtype(0.0), t1, dt0, y0)
+        ys = diffrax.diffeqsolve(
+            diffrax.ODETerm(body), jq.Magnus4(frame="body"), dtype(0.0), t1, dt0, y0
+        ).ys
+        assert ys.dtype == dtype and np.all(np.isfinite(np.asarray(ys, np.float32)))
