@@ -20,6 +20,7 @@ import errno
 import json
 import math
 import os
+import shutil
 import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -476,25 +477,30 @@ class _StateWriter:
     chunks (an interrupted run included).
     """
 
-    def __init__(self, path: str | os.PathLike, metadata: dict[str, Any]):
+    def __init__(self, path: str | os.PathLike, metadata: dict[str, Any], needed: int = 0):
+        """`needed`: the bytes the run's data files will take; a run that cannot fit on the file
+        system (counting the space a previous run in `path` frees) is a `ValueError` before anything
+        is touched, instead of writing until the disk is full."""
         self.path = os.fspath(path)
         index_path = os.path.join(self.path, "index.json")
         if os.path.exists(self.path):
             if not os.path.isdir(self.path):
                 raise ValueError(f"`path` {self.path!r} exists and is not a directory.")
             entries = set(os.listdir(self.path))
-            # Only the temporary of a first index: a run killed (SIGKILL) while writing it.
-            if entries == {"index.json.tmp"}:
-                os.remove(os.path.join(self.path, "index.json.tmp"))
-                entries = set()
-            if entries and "index.json" not in entries:
+            if entries - {"index.json.tmp"} and "index.json" not in entries:
                 raise ValueError(
                     f"`path` {self.path!r} is a non-empty directory that is not a jaxquat ensemble; "
                     "refusing to write into it."
                 )
-            if entries:
-                self._remove_previous(index_path)
+            previous = self._previous_files(index_path) if "index.json" in entries else []
+            self._check_space(needed, previous)
+            # Only the temporary of a first index: a run killed (SIGKILL) while writing it.
+            if entries == {"index.json.tmp"}:
+                os.remove(os.path.join(self.path, "index.json.tmp"))
+            for name in previous:
+                os.remove(name)
         else:
+            self._check_space(needed, [])
             try:
                 os.makedirs(self.path)
             except OSError as e:  # under a file, a dangling symbolic link, no permission, ...
@@ -513,11 +519,29 @@ class _StateWriter:
         )
         self._write_index()
 
-    def _remove_previous(self, index_path):
-        """Remove the data files named by the index of a previous run in `path` (only plain `.npy`
-        names inside it). An index that is not JSON, not a jaxquat ensemble's, or whose `records`
-        (a list of tables, each with a table of `files`) or `final` (a table) are malformed is a
-        `ValueError` naming the file, and nothing is removed."""
+    def _check_space(self, needed: int, previous: list[str]) -> None:
+        """A `ValueError` if `needed` bytes exceed the free space of the file system holding `path`
+        (its nearest existing directory) plus the size of the `previous` run's files."""
+        directory = os.path.abspath(self.path)
+        while not os.path.isdir(directory) and os.path.dirname(directory) != directory:
+            directory = os.path.dirname(directory)
+        try:
+            free = shutil.disk_usage(directory).free
+            free += sum(os.path.getsize(name) for name in previous)
+        except OSError:  # (the writes will say what is wrong)
+            return
+        if needed > free:
+            raise ValueError(
+                f"`path` {self.path!r}: the saved states need {needed / 1e9:.3g} GB and the file "
+                f"system holding it has {free / 1e9:.3g} GB free; save less often (`save_every`), "
+                "fewer bodies, or elsewhere."
+            )
+
+    def _previous_files(self, index_path) -> list[str]:
+        """The data files named by the index of a previous run in `path` (only plain `.npy` names
+        inside it, that exist), to be removed. An index that is not JSON, not a jaxquat ensemble's,
+        or whose `records` (a list of tables, each with a table of `files`) or `final` (a table) are
+        malformed is a `ValueError` naming the file."""
         try:
             with open(index_path, encoding="utf-8-sig") as f:
                 old = json.load(f)
@@ -545,9 +569,8 @@ class _StateWriter:
             )
         names = [n for r in records for n in r.get("files", {}).values()]
         names += list(final.values())
-        for name in names:
-            if _plain_npy_name(name) and os.path.isfile(os.path.join(self.path, name)):
-                os.remove(os.path.join(self.path, name))
+        files = [os.path.join(self.path, n) for n in dict.fromkeys(names) if _plain_npy_name(n)]
+        return [name for name in files if os.path.isfile(name)]
 
     def _save(self, name: str, array: np.ndarray) -> None:
         _replace_atomically(os.path.join(self.path, name), "wb", lambda f: np.save(f, array))
@@ -1290,6 +1313,8 @@ def simulate_ensemble(
       memory. The final state and statistics are written when the run completes. Only outside JAX
       transformations: under `jax.jit`, `jax.vmap` or a derivative (a traced input, or any call
       inside `jit`) `path` is a `ValueError`, raised before the run already in `path` is touched.
+      So is a run whose files cannot fit in the free space of the file system (counting what the
+      run it replaces frees), instead of writing until the disk is full.
     - `devices`: the devices to shard over. The bodies are laid out on a mesh of their own over
       them, whatever mesh `jax.set_mesh` has set; under `jax.jit`, `jax.vmap` or a derivative, where
       JAX sets no concrete mesh, the set mesh's axes must be automatic (explicit axes, the default of
@@ -1559,7 +1584,11 @@ def simulate_ensemble(
         )
         if metadata is not None:
             index_metadata["run"] = metadata
-        writer = _StateWriter(path, index_metadata)
+        # Numbers per body in the `.npy` files: the saved states (with ω for rigid bodies), then
+        # `finish`'s final q, ω and angle from the start (and the two statistics).
+        numbers = len(saved_steps) * (7 if dynamic else 4) + 8 + (2 if statistics else 0)
+        needed = numbers * num_bodies * jnp.dtype(dtype).itemsize
+        writer = _StateWriter(path, index_metadata, needed=needed)
 
     layout = _batch_layout(batch, sharding.mesh) if padded == num_bodies else None
 

@@ -1160,6 +1160,52 @@ def test_a_short_write_names_the_file_and_the_likely_cause(tmp_path, capsys, mon
     assert err.startswith(f"jaxquat: error: {run}") and "(is the disk full?)" in err, err
 
 
+def test_a_run_that_cannot_fit_on_the_disk_is_refused_before_anything_is_written(
+    tmp_path, capsys, monkeypatch
+):
+    """`simulate --bodies 100000000 --steps 1000 --save-every 1 --output big` (1.6 TB) started
+    writing on a disk with 64 GB free and wrote 11 GB before it was stopped (helper-76). Now the
+    bytes of the data files are compared with the free space first (counting what a previous run in
+    `path` frees), and a run that cannot fit is a ValueError that leaves the previous run whole; the
+    command line prints it as one line and exits 2."""
+    import shutil
+
+    from jaxquat import _ensemble
+
+    q0 = jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (10, 1))
+    run = tmp_path / "run"
+    first = simulate_ensemble(q0, jnp.ones(3), 0.1, 6, save_every=2, path=run)
+    previous = {p.name: p.read_bytes() for p in run.iterdir()}
+    data = sum(len(b) for name, b in previous.items() if name.endswith(".npy"))
+    # 4 saved states, then the final q, ω and angle: 10 bodies, float64, plus 5 files' headers
+    assert data == (4 * 4 + 8) * 10 * 8 + 5 * 128
+    usage = shutil.disk_usage(tmp_path)
+
+    def disk_usage_with(free):
+        return lambda path: usage._replace(free=free)
+
+    inertia = jnp.array([1.0, 2.0, 3.0])
+    monkeypatch.setattr(_ensemble.shutil, "disk_usage", disk_usage_with(0))
+    with pytest.raises(
+        ValueError, match=r"run': the saved states need 2\.88e-06 GB and .* has 2\.56e-06 GB free"
+    ):
+        simulate_ensemble(q0, jnp.ones(3), 0.1, 6, save_every=2, inertia=inertia, path=run)
+    assert {p.name: p.read_bytes() for p in run.iterdir()} == previous
+    with pytest.raises(ValueError, match=r"has 0 GB free; save less often"):
+        simulate_ensemble(q0, jnp.ones(3), 0.1, 6, save_every=2, path=tmp_path / "new")
+    assert not (tmp_path / "new").exists()
+    # The space the previous run frees counts: the same run fits in its place with nothing free.
+    again = simulate_ensemble(q0, jnp.ones(3), 0.1, 6, save_every=2, path=run)
+    np.testing.assert_array_equal(np.asarray(again.saved), np.asarray(first.saved))
+    monkeypatch.setattr(_ensemble.shutil, "disk_usage", disk_usage_with(10**10))
+    argv = ["simulate", "--bodies", "1000000", "--steps", "1000", "--save-every", "1"]
+    status = main([*argv, "--dtype", "float32", "--no-progress", "--output", str(tmp_path / "big")])
+    err = capsys.readouterr().err
+    assert status == 2 and err.count("\n") == 1, err
+    assert "the saved states need 16.1 GB and the file system holding it has 10 GB free" in err, err
+    assert not (tmp_path / "big").exists()
+
+
 def test_saved_times_that_overflow_are_refused_before_the_run(tmp_path, capsys):
     """t0 + k·dt beyond float64 at a saved step: `simulate` exited 0 and wrote an ensemble that
     `load_ensemble` then refused (helper-49). Now a ValueError naming dt and the step, before
