@@ -1449,7 +1449,8 @@ def _build_parser() -> argparse.ArgumentParser:
         description="Fit ω to a CSV of t,w,x,y,z observations. Prints ω (or ω at the knots), q0 — "
         "the fitted orientation at t0, the first observation's time (not at t = 0) — and the "
         "residuals; --json prints the fields model, frame, observations, t0, q0, residual_rms_deg, "
-        "residual_max_deg, converged and omega, omega_norm (constant model) or knots, omega_at_knots.",
+        "residual_max_deg, converged and omega, omega_norm (constant model) or knots, knots_from_t0, "
+        "omega_at_knots.",
     )
     fit.add_argument("file", help="CSV file: t,w,x,y,z per line, header optional")
     fit.add_argument(
@@ -1572,7 +1573,15 @@ def _start_jax(args: argparse.Namespace) -> None:
     import jax
 
     if args.distributed:
-        jax.distributed.initialize()
+        try:
+            jax.distributed.initialize()
+        except (ValueError, RuntimeError) as e:
+            raise CommandLineError(
+                f"--distributed: jax.distributed.initialize() failed ({_one_line(e)}); it finds the "
+                "other processes itself only under SLURM, Open MPI, Kubernetes or a Cloud TPU; "
+                "elsewhere call jax.distributed.initialize(coordinator_address, num_processes, "
+                "process_id) and jaxquat.simulate_ensemble from Python"
+            ) from None
     try:
         jax.devices()
     except Exception as e:  # noqa: BLE001 (JAX's own message, when it has one, is kept)

@@ -314,6 +314,13 @@ def _parse_seq(seq) -> tuple[bool, tuple[int, int, int]]:
         and seq[0] != seq[1]
         and seq[1] != seq[2]
     )
+    if not isinstance(seq, str):
+        shape = getattr(seq, "shape", ())
+        got = f"an array of shape {tuple(shape)}" if shape else repr(seq)
+        raise ValueError(
+            f"`seq` must be 3 axes in a string, such as 'xyz' or 'ZXZ'; got {got} (the arguments "
+            "are from_euler(seq, angles) and to_euler(q, seq), as in SciPy)."
+        )
     if not valid:
         raise ValueError(
             "`seq` must be 3 axes from 'xyz' (extrinsic) or from 'XYZ' (intrinsic), not mixing case, "

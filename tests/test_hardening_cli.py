@@ -1320,6 +1320,21 @@ def test_bench_relaunch_keeps_the_options_before_bench(monkeypatch, capsys):
     assert calls == [["-m", "jaxquat", "--distributed", "bench", "--quiet"], "initialize"]
 
 
+def test_distributed_without_a_cluster_says_where_it_works(monkeypatch, capsys):
+    """`jaxquat --distributed simulate` on a plain host printed only JAX's "coordinator_address
+    should be defined." (helper-76): the option relies on JAX finding the other processes itself.
+    The line now says so and what to do instead."""
+
+    def initialize():
+        raise ValueError("coordinator_address should be defined.")
+
+    monkeypatch.setattr("jax.distributed.initialize", initialize)
+    status, _, err = _run(["--distributed", "simulate", "--bodies", "4", "--steps", "2"], capsys)
+    assert status == 2 and err.count("\n") == 1, err
+    assert "jax.distributed.initialize() failed (coordinator_address should be defined.)" in err
+    assert "only under SLURM, Open MPI, Kubernetes or a Cloud TPU" in err
+
+
 def test_demo_output_that_cannot_be_created_fails_before_the_run(tmp_path, capsys, monkeypatch):
     """A dangling symbolic link passed the directory checks and failed only when the PNG was saved,
     after the whole demo had run and printed its table (a review); the path is now opened first."""

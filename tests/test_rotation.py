@@ -463,6 +463,15 @@ def test_unknown_euler_sequence_raises(seq):
         jq.to_euler(Q, seq)
 
 
+def test_swapped_euler_arguments_say_the_order():
+    """`from_euler(angles, seq)` printed the whole angle array as the sequence (helper-76)."""
+    order = r"got an array of shape \(3,\) \(the arguments are from_euler\(seq, angles\)"
+    with pytest.raises(ValueError, match=r"`seq` must be 3 axes in a string.*" + order):
+        jq.from_euler(np.array([0.1, 0.2, 0.3]), "xyz")
+    with pytest.raises(ValueError, match=r"got an array of shape \(4,\)"):
+        jq.to_euler("xyz", Q)
+
+
 @pytest.mark.parametrize("frame", [1, None, "World", b"world"])
 def test_bad_frame_raises(frame):
     with pytest.raises(ValueError, match=r"`frame` must be one of 'world', 'body'; got"):
