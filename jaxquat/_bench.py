@@ -1721,6 +1721,22 @@ def _json_default(x):
     return str(x)
 
 
+def to_json(report: dict) -> str:
+    """The report as strict JSON: a non-finite number (the error of a contender that returned NaN,
+    say) is written as null, since NaN and Infinity are not JSON and strict readers refuse them."""
+
+    def finite(x):
+        if isinstance(x, dict):
+            return {k: finite(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [finite(v) for v in x]
+        if isinstance(x, (float, np.floating)) and not math.isfinite(x):
+            return None
+        return x
+
+    return json.dumps(finite(report), indent=1, default=_json_default, allow_nan=False)
+
+
 # ----------------------------------------------------------------------------------------------------
 # Entry point
 
@@ -2002,9 +2018,7 @@ def main(argv: list[str] | None = None) -> int:
         report["load_average_at_end"] = None
     markdown = render_markdown(report)
     (output / "results.md").write_text(markdown + "\n", encoding="utf-8")
-    (output / "results.json").write_text(
-        json.dumps(report, indent=1, default=_json_default) + "\n", encoding="utf-8"
-    )
+    (output / "results.json").write_text(to_json(report) + "\n", encoding="utf-8")
     print(markdown)
     print(f"\nwritten: {output / 'results.md'}, {output / 'results.json'}", flush=True)
 

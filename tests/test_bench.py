@@ -356,3 +356,17 @@ def test_w4_speedup_from_a_bound_is_marked(tmp_path, monkeypatch):
     record = _bench.run_w4(_bench.PRESETS["micro"], tmp_path, lambda message: None)
     assert record["speedup_bounds"] == {"peer exact": "at least", "peer bound": "unknown"}
     assert "peer exact ≥ 20.0×" in _bench.render_markdown({**report, "w4": record})
+
+
+def test_the_json_report_is_strict_json():
+    # A contender returning NaN made its error NaN, written as the non-JSON token NaN (helper-79).
+    report = {
+        "rows": [{"error": float("nan"), "ratio": np.float64(np.inf), "rate": np.float32(2.5)}]
+    }
+    text = _bench.to_json(report)
+
+    def refuse(token):
+        raise ValueError(token)
+
+    loaded = json.loads(text, parse_constant=refuse)
+    assert loaded == {"rows": [{"error": None, "ratio": None, "rate": 2.5}]}
