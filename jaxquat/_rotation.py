@@ -307,13 +307,6 @@ _AXIS_INDEX = {"x": 0, "y": 1, "z": 2}
 
 def _parse_seq(seq) -> tuple[bool, tuple[int, int, int]]:
     """Validate an Euler sequence (SciPy's rule) → (extrinsic, axis indices)."""
-    valid = (
-        isinstance(seq, str)
-        and len(seq) == 3
-        and (set(seq) <= set("xyz") or set(seq) <= set("XYZ"))
-        and seq[0] != seq[1]
-        and seq[1] != seq[2]
-    )
     if not isinstance(seq, str):
         shape = getattr(seq, "shape", ())
         got = f"an array of shape {tuple(shape)}" if shape else repr(seq)
@@ -321,6 +314,12 @@ def _parse_seq(seq) -> tuple[bool, tuple[int, int, int]]:
             f"`seq` must be 3 axes in a string, such as 'xyz' or 'ZXZ'; got {got} (the arguments "
             "are from_euler(seq, angles) and to_euler(q, seq), as in SciPy)."
         )
+    valid = (
+        len(seq) == 3
+        and (set(seq) <= set("xyz") or set(seq) <= set("XYZ"))
+        and seq[0] != seq[1]
+        and seq[1] != seq[2]
+    )
     if not valid:
         raise ValueError(
             "`seq` must be 3 axes from 'xyz' (extrinsic) or from 'XYZ' (intrinsic), not mixing case, "
